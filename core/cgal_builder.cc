@@ -1,0 +1,57 @@
+// Initial / fallback Delaunay construction with CGAL, converted to our Mesh.
+#include "core/cgal_builder.h"
+
+#include <CGAL/Delaunay_triangulation_2.h>
+#include <CGAL/Exact_predicates_inexact_constructions_kernel.h>
+#include <CGAL/Triangulation_face_base_with_info_2.h>
+#include <CGAL/Triangulation_vertex_base_with_info_2.h>
+
+#include <utility>
+#include <vector>
+
+namespace kinetri::core {
+namespace {
+using Kernel = CGAL::Exact_predicates_inexact_constructions_kernel;
+using Vb = CGAL::Triangulation_vertex_base_with_info_2<uint32_t, Kernel>;
+using Fb = CGAL::Triangulation_face_base_with_info_2<uint32_t, Kernel>;
+using Tds = CGAL::Triangulation_data_structure_2<Vb, Fb>;
+using Delaunay = CGAL::Delaunay_triangulation_2<Kernel, Tds>;
+using CgalPoint = Kernel::Point_2;
+}  // namespace
+
+Mesh BuildDelaunayWithCgal(absl::Span<const Vec2> positions,
+                           absl::Span<const uint32_t> sites) {
+  std::vector<std::pair<CgalPoint, uint32_t>> input;
+  input.reserve(sites.size());
+  for (uint32_t s : sites) {
+    input.emplace_back(CgalPoint(positions[s].x, positions[s].y), s);
+  }
+  Delaunay dt;
+  dt.insert(input.begin(), input.end());
+  if (dt.dimension() < 2) return Mesh();
+
+  // Number every face (finite and infinite) and emit three half-edges each.
+  std::vector<Delaunay::Face_handle> faces;
+  for (auto f = dt.all_faces_begin(); f != dt.all_faces_end(); ++f) {
+    f->info() = static_cast<uint32_t>(faces.size());
+    faces.push_back(f);
+  }
+  const size_t num_he = faces.size() * 3;
+  std::vector<uint32_t> origin(num_he), twin(num_he);
+  for (size_t t = 0; t < faces.size(); ++t) {
+    const auto f = faces[t];
+    for (int i = 0; i < 3; ++i) {
+      const auto v = f->vertex(i);
+      origin[3 * t + i] = dt.is_infinite(v) ? kInfiniteVertex : v->info();
+      // Half-edge v_i -> v_{i+1} is opposite v_{i+2}; its neighbour g holds
+      // the reverse edge opposite its vertex k = g->index(f), at slot k+1.
+      const auto g = f->neighbor((i + 2) % 3);
+      const int k = g->index(f);
+      twin[3 * t + i] = 3 * g->info() + static_cast<uint32_t>((k + 1) % 3);
+    }
+  }
+  return Mesh(static_cast<uint32_t>(positions.size()), std::move(origin),
+              std::move(twin));
+}
+
+}  // namespace kinetri::core

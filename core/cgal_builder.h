@@ -1,0 +1,22 @@
+// Initial / fallback Delaunay construction with CGAL, converted to our Mesh.
+#ifndef KINETRI_CORE_CGAL_BUILDER_H_
+#define KINETRI_CORE_CGAL_BUILDER_H_
+
+#include <cstdint>
+
+#include "absl/types/span.h"
+#include "core/mesh.h"
+#include "core/vec2.h"
+
+namespace kinetri::core {
+
+// Builds the Delaunay triangulation of positions[s] for s in `sites` (which
+// must be pairwise distinct). Vertex ids in the returned mesh are the site
+// ids; the mesh has positions.size() vertex slots. Returns an empty mesh when
+// the sites span fewer than two dimensions (fewer than 3, or all collinear).
+Mesh BuildDelaunayWithCgal(absl::Span<const Vec2> positions,
+                           absl::Span<const uint32_t> sites);
+
+}  // namespace kinetri::core
+
+#endif  // KINETRI_CORE_CGAL_BUILDER_H_

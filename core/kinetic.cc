@@ -1,0 +1,389 @@
+// CPU executor of the kinetic update: parallel fixing and legalizing rounds.
+#include "core/kinetic.h"
+
+#include <tbb/parallel_sort.h>
+
+#include <algorithm>
+#include <atomic>
+#include <numeric>
+
+#include "core/flip_rules.h"
+#include "core/parallel.h"
+
+namespace kinetri::core {
+namespace {
+
+constexpr size_t kBlock = 4096;
+
+// Indices i in [0, n) with pred(i), ascending; independent of thread count.
+template <typename Pred>
+std::vector<uint32_t> Filter(size_t n, Pred&& pred) {
+  const size_t blocks = (n + kBlock - 1) / kBlock;
+  std::vector<uint32_t> count(blocks + 1, 0);
+  ParallelFor(
+      0, blocks,
+      [&](size_t b) {
+        uint32_t c = 0;
+        const size_t end = std::min(n, (b + 1) * kBlock);
+        for (size_t i = b * kBlock; i < end; ++i) c += pred(i) ? 1 : 0;
+        count[b + 1] = c;
+      },
+      1);
+  std::partial_sum(count.begin(), count.end(), count.begin());
+  std::vector<uint32_t> out(count[blocks]);
+  ParallelFor(
+      0, blocks,
+      [&](size_t b) {
+        uint32_t k = count[b];
+        const size_t end = std::min(n, (b + 1) * kBlock);
+        for (size_t i = b * kBlock; i < end; ++i) {
+          if (pred(i)) out[k++] = static_cast<uint32_t>(i);
+        }
+      },
+      1);
+  return out;
+}
+
+void SortUnique(std::vector<uint32_t>& v) {
+  tbb::parallel_sort(v.begin(), v.end());
+  v.erase(std::unique(v.begin(), v.end()), v.end());
+}
+
+inline void AtomicMin(uint32_t* slot, uint32_t value) {
+  std::atomic_ref<uint32_t> ref(*slot);
+  uint32_t cur = ref.load(std::memory_order_relaxed);
+  while (value < cur &&
+         !ref.compare_exchange_weak(cur, value, std::memory_order_relaxed)) {
+  }
+}
+
+inline uint32_t Canonical(const MeshView& m, uint32_t e) {
+  return std::min(e, m.twin[e]);
+}
+
+// Resolves conflicts among `edges` (sorted, unique): returns the winners.
+// `vertex_of` (optional) holds two vertices per proposal that it must also
+// claim (kNoVertex: none).
+std::vector<uint32_t> SelectIndependent(const MeshView& m,
+                                        const std::vector<uint32_t>& edges,
+                                        const std::vector<uint32_t>* vertex_of,
+                                        std::vector<uint32_t>& tri_claim,
+                                        std::vector<uint32_t>& vert_claim) {
+  const size_t n = edges.size();
+  ParallelFor(0, n, [&](size_t i) {
+    uint32_t fp[6];
+    rules::FlipFootprint(m, edges[i], fp);
+    for (uint32_t t : fp) AtomicMin(&tri_claim[t], edges[i]);
+    if (vertex_of) {
+      for (int k = 0; k < 2; ++k) {
+        const uint32_t v = (*vertex_of)[2 * i + k];
+        if (v < vert_claim.size()) AtomicMin(&vert_claim[v], edges[i]);
+      }
+    }
+  });
+  std::vector<uint32_t> win_idx = Filter(n, [&](size_t i) {
+    uint32_t fp[6];
+    rules::FlipFootprint(m, edges[i], fp);
+    for (uint32_t t : fp) {
+      if (tri_claim[t] != edges[i]) return false;
+    }
+    if (vertex_of) {
+      for (int k = 0; k < 2; ++k) {
+        const uint32_t v = (*vertex_of)[2 * i + k];
+        if (v < vert_claim.size() && vert_claim[v] != edges[i]) return false;
+      }
+    }
+    return true;
+  });
+  ParallelFor(0, n, [&](size_t i) {
+    uint32_t fp[6];
+    rules::FlipFootprint(m, edges[i], fp);
+    for (uint32_t t : fp) tri_claim[t] = kNoEdge;
+    if (vertex_of) {
+      for (int k = 0; k < 2; ++k) {
+        const uint32_t v = (*vertex_of)[2 * i + k];
+        if (v < vert_claim.size()) vert_claim[v] = kNoEdge;
+      }
+    }
+  });
+  std::vector<uint32_t> winners(win_idx.size());
+  for (size_t i = 0; i < win_idx.size(); ++i) winners[i] = win_idx[i];
+  return winners;  // indices into edges
+}
+
+}  // namespace
+
+FlipCounts& FlipCounts::operator+=(const FlipCounts& o) {
+  interior_fix += o.interior_fix;
+  hull_absorb += o.hull_absorb;
+  hull_release += o.hull_release;
+  delaunay += o.delaunay;
+  fix_rounds += o.fix_rounds;
+  legalize_rounds += o.legalize_rounds;
+  return *this;
+}
+
+std::vector<uint32_t> KineticExecutor::TrianglesAround(
+    const Mesh& mesh, const std::vector<uint32_t>& vertices) {
+  const MeshView m = mesh.view();
+  const auto& ve = mesh.vertex_edge();
+  std::vector<std::vector<uint32_t>> parts(
+      (vertices.size() + kBlock - 1) / kBlock);
+  ParallelFor(
+      0, parts.size(),
+      [&](size_t b) {
+        const size_t end = std::min(vertices.size(), (b + 1) * kBlock);
+        for (size_t i = b * kBlock; i < end; ++i) {
+          const uint32_t e0 = ve[vertices[i]];
+          if (e0 == kNoEdge) continue;
+          uint32_t e = e0;
+          do {
+            parts[b].push_back(TriangleOf(e));
+            e = m.twin[Prev(e)];
+          } while (e != e0);
+        }
+      },
+      1);
+  std::vector<uint32_t> out;
+  for (auto& p : parts) out.insert(out.end(), p.begin(), p.end());
+  SortUnique(out);
+  return out;
+}
+
+std::vector<uint32_t> KineticExecutor::FindInvalidTriangles(
+    const Mesh& mesh, const std::vector<Vec2>& pos,
+    const std::vector<uint32_t>* moved) {
+  const MeshView m = mesh.view();
+  const Vec2* p = pos.data();
+  if (moved == nullptr) {
+    return Filter(mesh.num_triangles(), [&](size_t t) {
+      return !rules::TriangleOk(m, p, static_cast<uint32_t>(t));
+    });
+  }
+  // Hull turns of neighbours of moved vertices change too: include the
+  // triangles around the moved vertices' neighbours' spokes by taking the
+  // two-ring of ghost triangles (cheap: only ghosts are re-examined).
+  std::vector<uint32_t> around = TrianglesAround(mesh, *moved);
+  std::vector<uint32_t> extra;
+  for (uint32_t t : around) {
+    if (!m.IsGhost(t)) continue;
+    for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
+      extra.push_back(TriangleOf(m.twin[e]));
+    }
+  }
+  around.insert(around.end(), extra.begin(), extra.end());
+  SortUnique(around);
+  std::vector<uint32_t> idx = Filter(around.size(), [&](size_t i) {
+    return !rules::TriangleOk(m, p, around[i]);
+  });
+  for (uint32_t& i : idx) i = around[i];
+  return idx;
+}
+
+void FlipScratch::Ensure(const Mesh& mesh) {
+  if (tri_claim.size() < mesh.num_triangles()) {
+    tri_claim.resize(mesh.num_triangles(), kNoEdge);
+  }
+  if (vert_claim.size() < mesh.num_vertices()) {
+    vert_claim.resize(mesh.num_vertices(), kNoEdge);
+  }
+}
+
+bool KineticExecutor::Fix(Mesh& mesh, const std::vector<Vec2>& pos,
+                          std::vector<uint32_t> invalid, FlipScratch& scratch,
+                          FlipCounts* counts, std::vector<uint32_t>* touched,
+                          std::vector<uint32_t>* log,
+                          std::vector<uint32_t>* stuck) {
+  const MeshView m = mesh.view();
+  const Vec2* p = pos.data();
+  scratch.Ensure(mesh);
+  std::vector<uint32_t>& tri_claim = scratch.tri_claim;
+  std::vector<uint32_t>& vert_claim = scratch.vert_claim;
+  std::vector<uint32_t> work = std::move(invalid);
+  SortUnique(work);
+  while (true) {
+    // Keep only invalid triangles; propose one flip each.
+    std::vector<uint32_t> bad_idx = Filter(work.size(), [&](size_t i) {
+      return !rules::TriangleOk(m, p, work[i]);
+    });
+    if (bad_idx.empty()) break;
+    std::vector<rules::FixProposal> props(bad_idx.size());
+    ParallelFor(0, bad_idx.size(), [&](size_t i) {
+      props[i] = rules::ProposeFixFlip(m, p, work[bad_idx[i]]);
+      if (props[i].edge != kNoEdge) {
+        props[i].edge = Canonical(m, props[i].edge);
+      }
+    });
+    std::vector<rules::FixProposal> valid;
+    for (const auto& pr : props) {
+      if (pr.edge != kNoEdge) valid.push_back(pr);
+    }
+    if (valid.empty()) {
+      if (stuck) {
+        for (uint32_t i : bad_idx) stuck->push_back(work[i]);
+      }
+      return false;  // stuck: caller splits the step
+    }
+    std::sort(valid.begin(), valid.end(),
+              [](const rules::FixProposal& x, const rules::FixProposal& y) {
+                return x.edge < y.edge;
+              });
+    valid.erase(std::unique(valid.begin(), valid.end(),
+                            [](const rules::FixProposal& x,
+                               const rules::FixProposal& y) {
+                              return x.edge == y.edge;
+                            }),
+                valid.end());
+    std::vector<uint32_t> edges(valid.size()), joining(2 * valid.size());
+    for (size_t i = 0; i < valid.size(); ++i) {
+      edges[i] = valid[i].edge;
+      joining[2 * i] = valid[i].new_u;
+      joining[2 * i + 1] = valid[i].new_w;
+    }
+    const std::vector<uint32_t> winners =
+        SelectIndependent(m, edges, &joining, tri_claim, vert_claim);
+    // Next worklist: still-invalid triangles plus every winner footprint
+    // (computed before flipping; flips keep triangle ids).
+    std::vector<uint32_t> next;
+    next.reserve(bad_idx.size() + 6 * winners.size());
+    for (uint32_t i : bad_idx) next.push_back(work[i]);
+    for (uint32_t w : winners) {
+      uint32_t fp[6];
+      rules::FlipFootprint(m, edges[w], fp);
+      next.insert(next.end(), fp, fp + 6);
+      if (touched) touched->insert(touched->end(), fp, fp + 2);
+    }
+    ParallelFor(0, winners.size(), [&](size_t i) { m.Flip(edges[winners[i]]); });
+    for (uint32_t w : winners) mesh.UpdateVertexEdgesAfterFlip(edges[w]);
+    if (log) {
+      for (uint32_t w : winners) log->push_back(edges[w]);
+    }
+    if (counts) {
+      ++counts->fix_rounds;
+      for (uint32_t w : winners) {
+        switch (valid[w].kind) {
+          case rules::kInteriorFlip:
+            ++counts->interior_fix;
+            break;
+          case rules::kHullAbsorb:
+            ++counts->hull_absorb;
+            break;
+          case rules::kHullRelease:
+            ++counts->hull_release;
+            break;
+          default:
+            break;
+        }
+      }
+    }
+    SortUnique(next);
+    work = std::move(next);
+  }
+  return HullWindsOnce(mesh, pos);
+}
+
+void KineticExecutor::Undo(Mesh& mesh, const std::vector<uint32_t>& log) {
+  const MeshView m = mesh.view();
+  for (auto it = log.rbegin(); it != log.rend(); ++it) {
+    m.Flip(*it);
+    m.Flip(*it);
+    m.Flip(*it);
+    mesh.UpdateVertexEdgesAfterFlip(*it);
+  }
+}
+
+void KineticExecutor::Legalize(Mesh& mesh, const std::vector<Vec2>& pos,
+                               const std::vector<uint32_t>* seed_triangles,
+                               FlipScratch& scratch, FlipCounts* counts) {
+  const MeshView m = mesh.view();
+  const Vec2* p = pos.data();
+  std::vector<uint32_t> work;
+  if (seed_triangles == nullptr) {
+    work = Filter(mesh.num_half_edges(),
+                  [&](size_t e) { return e < m.twin[e]; });
+  } else {
+    work.reserve(seed_triangles->size() * 3);
+    for (uint32_t t : *seed_triangles) {
+      for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
+        work.push_back(Canonical(m, e));
+      }
+    }
+    SortUnique(work);
+  }
+  scratch.Ensure(mesh);
+  std::vector<uint32_t>& tri_claim = scratch.tri_claim;
+  std::vector<uint32_t> no_vertices;
+  while (true) {
+    std::vector<uint32_t> idx = Filter(work.size(), [&](size_t i) {
+      return rules::IsIllegal(m, p, work[i]);
+    });
+    if (idx.empty()) break;
+    std::vector<uint32_t> edges(idx.size());
+    for (size_t i = 0; i < idx.size(); ++i) edges[i] = work[idx[i]];
+    const std::vector<uint32_t> winners =
+        SelectIndependent(m, edges, nullptr, tri_claim, no_vertices);
+    ParallelFor(0, winners.size(), [&](size_t i) { m.Flip(edges[winners[i]]); });
+    for (uint32_t w : winners) mesh.UpdateVertexEdgesAfterFlip(edges[w]);
+    // Next worklist: losers plus the four outer edges of each flipped quad.
+    std::vector<uint32_t> next;
+    next.reserve(edges.size() + 4 * winners.size());
+    {
+      size_t w = 0;
+      for (size_t i = 0; i < edges.size(); ++i) {
+        if (w < winners.size() && winners[w] == i) {
+          ++w;
+          continue;
+        }
+        next.push_back(edges[i]);
+      }
+    }
+    const size_t base = next.size();
+    next.resize(base + 4 * winners.size());
+    ParallelFor(0, winners.size(), [&](size_t i) {
+      const uint32_t e = edges[winners[i]], f = m.twin[e];
+      next[base + 4 * i + 0] = Canonical(m, Next(e));
+      next[base + 4 * i + 1] = Canonical(m, Prev(e));
+      next[base + 4 * i + 2] = Canonical(m, Next(f));
+      next[base + 4 * i + 3] = Canonical(m, Prev(f));
+    });
+    if (counts) {
+      ++counts->legalize_rounds;
+      counts->delaunay += winners.size();
+    }
+    SortUnique(next);
+    work = std::move(next);
+  }
+}
+
+bool KineticExecutor::HullWindsOnce(const Mesh& mesh,
+                                    const std::vector<Vec2>& pos) {
+  const MeshView m = mesh.view();
+  // Find one ghost triangle (parallel search, first by index).
+  const std::vector<uint32_t> ghosts =
+      Filter(mesh.num_triangles(), [&](size_t t) {
+        return m.IsGhost(static_cast<uint32_t>(t));
+      });
+  if (ghosts.size() < 3) return false;
+  // Walk the hull: from ghost g with spoke a->inf, the next ghost is across
+  // the half-edge inf->q, i.e. across Next(spoke).
+  auto above = [&](uint32_t u, uint32_t v) {  // (y, x) lexicographic u > v
+    const Vec2 &a = pos[u], &b = pos[v];
+    return a.y > b.y || (a.y == b.y && a.x > b.x);
+  };
+  const uint32_t g0 = ghosts[0];
+  uint32_t g = g0;
+  size_t steps = 0, tops = 0;
+  do {
+    const uint32_t s = rules::SpokeOf(m, g);
+    if (s == kNoEdge) return false;
+    const uint32_t a = m.origin[s];
+    const uint32_t pv = rules::SpokePrev(m, s), nx = rules::SpokeNext(m, s);
+    if (pv == kInfiniteVertex || nx == kInfiniteVertex) return false;
+    if (above(a, pv) && above(a, nx)) ++tops;
+    g = TriangleOf(m.twin[Next(s)]);
+    if (++steps > ghosts.size()) return false;
+  } while (g != g0);
+  return steps == ghosts.size() && tops == 1;
+}
+
+}  // namespace kinetri::core

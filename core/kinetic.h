@@ -1,0 +1,79 @@
+// CPU executor of the kinetic update: parallel fixing and legalizing rounds.
+//
+// Both phases run in rounds over a sorted worklist. In a round every element
+// proposes at most one flip (core/flip_rules.h); a proposal wins when it holds
+// the smallest edge id on all six triangles of its footprint (and, for a hull
+// absorption, on the joining vertex), claimed with atomic min. Winners have
+// disjoint footprints and flip concurrently. Because proposals, claims and
+// worklists are pure functions of the mesh state, the result, including
+// triangle numbering, is identical for any number of threads.
+#ifndef KINETRI_CORE_KINETIC_H_
+#define KINETRI_CORE_KINETIC_H_
+
+#include <cstdint>
+#include <vector>
+
+#include "core/mesh.h"
+#include "core/vec2.h"
+
+namespace kinetri::core {
+
+struct FlipCounts {
+  uint64_t interior_fix = 0;   // flips repairing inverted triangles
+  uint64_t hull_absorb = 0;    // vertices that crossed a hull edge
+  uint64_t hull_release = 0;   // hull vertices that became reflex
+  uint64_t delaunay = 0;       // legalizing flips
+  uint32_t fix_rounds = 0;
+  uint32_t legalize_rounds = 0;
+
+  FlipCounts& operator+=(const FlipCounts& o);
+};
+
+// Claim arrays reused across rounds and calls (all entries kNoEdge between
+// uses).
+struct FlipScratch {
+  std::vector<uint32_t> tri_claim;
+  std::vector<uint32_t> vert_claim;
+  void Ensure(const Mesh& mesh);
+};
+
+class KineticExecutor {
+ public:
+  // Triangles of the mesh that are invalid for `pos`. If `moved` is non-null,
+  // only triangles around those vertices are examined (vertex_edge must be
+  // valid).
+  static std::vector<uint32_t> FindInvalidTriangles(
+      const Mesh& mesh, const std::vector<Vec2>& pos,
+      const std::vector<uint32_t>* moved);
+
+  // Repairs the given invalid triangles by flips. Returns true iff the mesh
+  // is afterwards a valid triangulation of pos (embedding, convex hull).
+  // `touched` receives the triangles changed by flips, `log` the flipped
+  // edges in order (for Undo) and, on failure, `stuck` the triangles left
+  // invalid. vertex_edge is kept valid.
+  static bool Fix(Mesh& mesh, const std::vector<Vec2>& pos,
+                  std::vector<uint32_t> invalid, FlipScratch& scratch,
+                  FlipCounts* counts, std::vector<uint32_t>* touched,
+                  std::vector<uint32_t>* log, std::vector<uint32_t>* stuck);
+
+  // Reverts the flips recorded by Fix (a flip applied four times is the
+  // identity, so each logged flip is undone by three more, newest first).
+  static void Undo(Mesh& mesh, const std::vector<uint32_t>& log);
+
+  // Delaunay flips until every edge is locally Delaunay. Starts from all
+  // edges of the triangles in `seed_triangles`, or from all edges if null.
+  static void Legalize(Mesh& mesh, const std::vector<Vec2>& pos,
+                       const std::vector<uint32_t>* seed_triangles,
+                       FlipScratch& scratch, FlipCounts* counts);
+
+  // Triangles incident to the given vertices (sorted, unique).
+  static std::vector<uint32_t> TrianglesAround(
+      const Mesh& mesh, const std::vector<uint32_t>& vertices);
+
+  // Does the hull polygon wind exactly once (one topmost vertex)?
+  static bool HullWindsOnce(const Mesh& mesh, const std::vector<Vec2>& pos);
+};
+
+}  // namespace kinetri::core
+
+#endif  // KINETRI_CORE_KINETIC_H_

@@ -1,0 +1,102 @@
+// Owning half-edge mesh: construction, vertex->edge links, renumbering.
+#include "core/mesh.h"
+
+#include <algorithm>
+#include <atomic>
+#include <utility>
+
+#include "core/parallel.h"
+
+namespace kinetri::core {
+
+Mesh::Mesh(uint32_t num_vertices, std::vector<uint32_t> origin,
+           std::vector<uint32_t> twin)
+    : num_vertices_(num_vertices),
+      origin_(std::move(origin)),
+      twin_(std::move(twin)) {
+  RebuildVertexEdges();
+}
+
+void Mesh::RebuildVertexEdges() {
+  vertex_edge_.assign(num_vertices_, kNoEdge);
+  uint32_t* ve = vertex_edge_.data();
+  const uint32_t* org = origin_.data();
+  ParallelFor(0, origin_.size(), [&](size_t e) {
+    const uint32_t v = org[e];
+    if (v == kInfiniteVertex || v == kNoVertex) return;
+    std::atomic_ref<uint32_t> slot(ve[v]);
+    uint32_t cur = slot.load(std::memory_order_relaxed);
+    const uint32_t mine = static_cast<uint32_t>(e);
+    while (mine < cur &&
+           !slot.compare_exchange_weak(cur, mine, std::memory_order_relaxed)) {
+    }
+  });
+}
+
+void Mesh::RenumberVertices(const std::vector<uint32_t>& new_of_old) {
+  uint32_t* org = origin_.data();
+  ParallelFor(0, origin_.size(), [&](size_t e) {
+    if (org[e] != kInfiniteVertex && org[e] != kNoVertex) {
+      org[e] = new_of_old[org[e]];
+    }
+  });
+  RebuildVertexEdges();
+}
+
+void Mesh::UpdateVertexEdgesAfterFlip(uint32_t e) {
+  const uint32_t f = twin_[e];
+  for (uint32_t h : {e, Next(e), Prev(e), f, Next(f), Prev(f)}) {
+    const uint32_t v = origin_[h];
+    if (v != kInfiniteVertex) vertex_edge_[v] = h;
+  }
+}
+
+uint32_t Mesh::AllocateTriangle() {
+  if (!free_.empty()) {
+    const uint32_t t = free_.back();
+    free_.pop_back();
+    return t;
+  }
+  const uint32_t t = num_triangles();
+  origin_.resize(origin_.size() + 3, kNoVertex);
+  twin_.resize(twin_.size() + 3, kNoEdge);
+  return t;
+}
+
+void Mesh::FreeTriangle(uint32_t t) {
+  for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
+    origin_[e] = kNoVertex;
+    twin_[e] = kNoEdge;
+  }
+  free_.push_back(t);
+}
+
+void Mesh::Compact() {
+  std::sort(free_.begin(), free_.end());
+  size_t lo = 0;
+  uint32_t last = num_triangles();
+  while (lo < free_.size()) {
+    // Drop free slots at the end.
+    while (last > 0 && origin_[3 * (last - 1)] == kNoVertex) --last;
+    if (free_[lo] >= last) break;
+    const uint32_t dst = free_[lo++];
+    const uint32_t src = last - 1;
+    for (uint32_t k = 0; k < 3; ++k) {
+      const uint32_t from = 3 * src + k, to = 3 * dst + k;
+      origin_[to] = origin_[from];
+      twin_[to] = twin_[from];
+      twin_[twin_[to]] = to;
+      const uint32_t v = origin_[to];
+      if (v != kInfiniteVertex && vertex_edge_[v] == from) vertex_edge_[v] = to;
+      origin_[from] = kNoVertex;
+      twin_[from] = kNoEdge;
+    }
+    last = src;
+  }
+  while (last > 0 && origin_[3 * (last - 1)] == kNoVertex) --last;
+  origin_.resize(size_t{3} * last);
+  twin_.resize(size_t{3} * last);
+  free_.clear();
+}
+
+}  // namespace kinetri::core

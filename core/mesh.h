@@ -1,0 +1,169 @@
+// Half-edge triangle mesh (topology only) in structure-of-arrays form.
+//
+// Layout (all indices 32-bit):
+//   * Triangle t owns half-edges 3t, 3t+1, 3t+2 in counter-clockwise order,
+//     so triangle -> half-edge is implicit (3t) and Next/Prev are arithmetic.
+//   * origin[e]       vertex at the start of half-edge e. The vertex opposite
+//                     e in its own triangle is origin[Prev(e)], and the vertex
+//                     across e (the one the Delaunay test needs) is
+//                     origin[Prev(twin[e])]: one lookup once twin is loaded.
+//   * twin[e]         the oppositely directed half-edge of the neighbour.
+//   * vertex_edge[v]  one half-edge leaving v (kNoEdge for vertices that are
+//                     not in the mesh, e.g. hidden duplicates).
+//   * kInfiniteVertex closes the mesh: every hull edge a->b has a "ghost"
+//                     triangle (b, a, inf) on its outer side, so the mesh is a
+//                     closed sphere and every edge has two triangles.
+//
+/* Flip of the edge a-b shared by t1 = (a, b, c) and t2 = (b, a, d):
+
+           c                         c
+         /   \                     / | \
+    ep /  t1   \ en           en' /  |  \ fp'
+      /    e    \                /   |   \
+     a --------- b    ==>       a  e | f  b
+      \    f    /                \   |   /
+    fn \  t2   / fp           ep' \  |  / fn'
+         \   /                     \ | /
+           d                         d
+   (x' = the slot that holds the edge after the flip)
+*/
+//   t1 becomes (d, c, a): e = d->c, Next(e) = c->a, Prev(e) = a->d.
+//   t2 becomes (c, d, b): f = c->d, Next(f) = d->b, Prev(f) = b->c.
+//   The outer half-edges keep their neighbours; only the twin links of the
+//   four outer edges are rewritten. vertex_edge is not touched by a flip
+//   (callers refresh it after a batch; see Mesh::RebuildVertexEdges), which
+//   keeps concurrent flips of non-adjacent triangle pairs race-free.
+#ifndef KINETRI_CORE_MESH_H_
+#define KINETRI_CORE_MESH_H_
+
+#include <cstdint>
+#include <vector>
+
+#include "core/hd.h"
+
+namespace kinetri::core {
+
+inline constexpr uint32_t kNoEdge = 0xFFFFFFFFu;
+inline constexpr uint32_t kNoVertex = 0xFFFFFFFFu;
+inline constexpr uint32_t kInfiniteVertex = 0xFFFFFFFEu;
+
+KINETRI_HD inline uint32_t Next(uint32_t e) {
+  return (e % 3 == 2) ? e - 2 : e + 1;
+}
+KINETRI_HD inline uint32_t Prev(uint32_t e) {
+  return (e % 3 == 0) ? e + 2 : e - 1;
+}
+KINETRI_HD inline uint32_t TriangleOf(uint32_t e) { return e / 3; }
+
+// Non-owning, trivially copyable view: what per-element kernels receive.
+struct MeshView {
+  uint32_t* origin = nullptr;
+  uint32_t* twin = nullptr;
+  uint32_t num_half_edges = 0;
+
+  KINETRI_HD uint32_t Dest(uint32_t e) const { return origin[Next(e)]; }
+  // Vertex of e's own triangle that is not on e.
+  KINETRI_HD uint32_t Apex(uint32_t e) const { return origin[Prev(e)]; }
+  // Vertex across e (apex of the twin's triangle).
+  KINETRI_HD uint32_t Across(uint32_t e) const { return origin[Prev(twin[e])]; }
+  // A triangle slot released by vertex removal (origin == kNoVertex).
+  KINETRI_HD bool IsFree(uint32_t t) const {
+    return origin[3 * t] == kNoVertex;
+  }
+  KINETRI_HD bool IsGhost(uint32_t t) const {
+    return origin[3 * t] == kInfiniteVertex ||
+           origin[3 * t + 1] == kInfiniteVertex ||
+           origin[3 * t + 2] == kInfiniteVertex;
+  }
+
+  // Flips edge e (see the drawing above). The caller guarantees that no
+  // other flip touches the two triangles or their four neighbours.
+  KINETRI_HD void Flip(uint32_t e) const {
+    const uint32_t f = twin[e];
+    const uint32_t en = Next(e), ep = Prev(e);
+    const uint32_t fn = Next(f), fp = Prev(f);
+    const uint32_t a = origin[e], b = origin[f];
+    const uint32_t c = origin[ep], d = origin[fp];
+    const uint32_t tw_en = twin[en], tw_ep = twin[ep];
+    const uint32_t tw_fn = twin[fn], tw_fp = twin[fp];
+    // t1 = (d, c, a)
+    origin[e] = d;
+    origin[en] = c;
+    origin[ep] = a;
+    twin[en] = tw_ep;
+    twin[tw_ep] = en;
+    twin[ep] = tw_fn;
+    twin[tw_fn] = ep;
+    // t2 = (c, d, b)
+    origin[f] = c;
+    origin[fn] = d;
+    origin[fp] = b;
+    twin[fn] = tw_fp;
+    twin[tw_fp] = fn;
+    twin[fp] = tw_en;
+    twin[tw_en] = fp;
+  }
+};
+
+// Owning mesh. Vertices are 0..num_vertices-1 plus kInfiniteVertex.
+class Mesh {
+ public:
+  Mesh() = default;
+
+  // Builds from counter-clockwise triangles (vertex triples, ghosts use
+  // kInfiniteVertex) and the twin of each half-edge.
+  Mesh(uint32_t num_vertices, std::vector<uint32_t> origin,
+       std::vector<uint32_t> twin);
+
+  MeshView view() {
+    return MeshView{origin_.data(), twin_.data(),
+                    static_cast<uint32_t>(origin_.size())};
+  }
+  MeshView view() const {
+    return MeshView{const_cast<uint32_t*>(origin_.data()),
+                    const_cast<uint32_t*>(twin_.data()),
+                    static_cast<uint32_t>(origin_.size())};
+  }
+
+  uint32_t num_vertices() const { return num_vertices_; }
+  uint32_t num_half_edges() const {
+    return static_cast<uint32_t>(origin_.size());
+  }
+  uint32_t num_triangles() const { return num_half_edges() / 3; }
+  const std::vector<uint32_t>& origin() const { return origin_; }
+  const std::vector<uint32_t>& twin() const { return twin_; }
+  const std::vector<uint32_t>& vertex_edge() const { return vertex_edge_; }
+  std::vector<uint32_t>& mutable_vertex_edge() { return vertex_edge_; }
+
+  // After Flip(e): points vertex_edge of the four quad vertices at
+  // half-edges that now leave them (call serially: deterministic).
+  void UpdateVertexEdgesAfterFlip(uint32_t e);
+
+  // Triangle slots: removal frees two, insertion takes two. Allocate reuses
+  // the most recently freed slot or appends (invalidating views).
+  uint32_t AllocateTriangle();
+  void FreeTriangle(uint32_t t);
+  bool has_free_triangles() const { return !free_.empty(); }
+  // Moves the last triangles into free slots so that none remain.
+  void Compact();
+
+  // vertex_edge[v] = smallest half-edge leaving v (deterministic), in
+  // parallel. Vertices with no edge get kNoEdge.
+  void RebuildVertexEdges();
+
+  // Renames vertices: new id = new_of_old[old]. kInfiniteVertex is kept.
+  void RenumberVertices(const std::vector<uint32_t>& new_of_old);
+
+  bool empty() const { return origin_.empty(); }
+
+ private:
+  uint32_t num_vertices_ = 0;
+  std::vector<uint32_t> origin_;
+  std::vector<uint32_t> twin_;
+  std::vector<uint32_t> vertex_edge_;
+  std::vector<uint32_t> free_;
+};
+
+}  // namespace kinetri::core
+
+#endif  // KINETRI_CORE_MESH_H_

@@ -1,0 +1,350 @@
+// Batched proximity queries on the Delaunay graph, results in CSR form.
+#include "core/queries.h"
+
+#include <algorithm>
+#include <cmath>
+#include <queue>
+
+#include "absl/container/flat_hash_set.h"
+#include "absl/strings/str_cat.h"
+#include "core/parallel.h"
+#include "core/predicates.h"
+#include "core/query_walks.h"
+
+namespace kinetri::core {
+namespace {
+
+struct Hit {
+  uint32_t ext;
+  double dist;
+};
+
+struct Query {
+  Vec2 q;
+  uint32_t self_ext = kNoVertex;   // point to exclude
+  uint32_t start_site = kNoVertex;  // walk start (kNoVertex: use a hint)
+};
+
+double Distance(const Vec2& a, const Vec2& b) {
+  return std::hypot(a.x - b.x, a.y - b.y);
+}
+
+// Appends the points of `site` (ascending external id) except `skip`.
+void EmitSite(const TriangulationView& v, uint32_t site, const Vec2& q,
+              uint32_t skip, std::vector<Hit>& out) {
+  const size_t begin = out.size();
+  const double d = Distance(q, v.pos[site]);
+  for (uint32_t p = site; p != kNoVertex; p = v.dup_next[p]) {
+    const uint32_t ext = v.ext_of_int[p];
+    if (ext != skip) out.push_back({ext, d});
+  }
+  if (out.size() - begin > 1) {
+    std::sort(out.begin() + begin, out.end(),
+              [](const Hit& a, const Hit& b) { return a.ext < b.ext; });
+  }
+}
+
+absl::Status CheckQueryPosition(const Vec2& p, size_t i) {
+  for (int axis = 0; axis < 2; ++axis) {
+    const double c = axis == 0 ? p.x : p.y;
+    const char* name = axis == 0 ? "x" : "y";
+    if (std::isnan(c) || std::isinf(c) || !InExactDomain(c)) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "queries[", i, "].", name, " = ", c,
+          std::isnan(c)   ? " is NaN"
+          : std::isinf(c) ? " is infinite"
+                          : " is outside the exact range"));
+    }
+  }
+  return absl::OkStatus();
+}
+
+absl::Status CheckRadius(double r) {
+  if (std::isnan(r)) return absl::InvalidArgumentError("radius is NaN");
+  if (r < 0.0) {
+    return absl::InvalidArgumentError(absl::StrCat("radius = ", r, " < 0"));
+  }
+  if (std::isinf(r) || !InExactDomain(r)) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "radius = ", r, " is outside the exact range (0 or [2^-100, 2^100])"));
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::vector<Query>> PositionQueries(absl::Span<const Vec2> qs) {
+  std::vector<Query> out(qs.size());
+  for (size_t i = 0; i < qs.size(); ++i) {
+    absl::Status s = CheckQueryPosition(qs[i], i);
+    if (!s.ok()) return s;
+    out[i].q = qs[i];
+  }
+  return out;
+}
+
+absl::StatusOr<std::vector<Query>> PointQueries(const Triangulation& t,
+                                                absl::Span<const uint32_t> ids,
+                                                bool exclude_self) {
+  const TriangulationView v = t.view();
+  std::vector<Query> out(ids.size());
+  for (size_t i = 0; i < ids.size(); ++i) {
+    if (ids[i] >= v.num_points) {
+      return absl::NotFoundError(absl::StrCat(
+          "ids[", i, "] = ", ids[i], ": no such point (size ", v.num_points,
+          ")"));
+    }
+    const uint32_t in = v.int_of_ext[ids[i]];
+    out[i].q = v.pos[in];
+    out[i].self_ext = exclude_self ? ids[i] : kNoVertex;
+    out[i].start_site = v.rep[in];
+  }
+  return out;
+}
+
+// Coarse grid of start sites for walks of large batches.
+class HintGrid {
+ public:
+  explicit HintGrid(const TriangulationView& v) : v_(v) {
+    if (v.num_sites == 0) return;
+    lo_ = hi_ = v.pos[v.sites[0]];
+    for (uint32_t i = 0; i < v.num_sites; ++i) {
+      const Vec2& p = v.pos[v.sites[i]];
+      lo_.x = std::min(lo_.x, p.x);
+      lo_.y = std::min(lo_.y, p.y);
+      hi_.x = std::max(hi_.x, p.x);
+      hi_.y = std::max(hi_.y, p.y);
+    }
+    side_ = std::max<uint32_t>(
+        1, static_cast<uint32_t>(std::sqrt(v.num_sites / 4.0)));
+    cells_.assign(size_t{side_} * side_, kNoVertex);
+    for (uint32_t i = 0; i < v.num_sites; ++i) {
+      const uint32_t s = v.sites[i];
+      uint32_t& c = cells_[Cell(v.pos[s])];
+      if (c == kNoVertex) c = s;
+    }
+  }
+
+  uint32_t Hint(const Vec2& q) const {
+    if (cells_.empty()) return v_.num_sites ? v_.sites[0] : kNoVertex;
+    const uint32_t c = cells_[Cell(q)];
+    return c != kNoVertex ? c : v_.sites[0];
+  }
+
+ private:
+  size_t Cell(const Vec2& p) const {
+    auto idx = [&](double x, double lo, double hi) -> uint32_t {
+      if (!(hi > lo)) return 0;
+      const double t = (x - lo) / (hi - lo) * side_;
+      if (!(t > 0)) return 0;
+      return std::min<uint32_t>(side_ - 1, static_cast<uint32_t>(t));
+    };
+    return size_t{idx(p.y, lo_.y, hi_.y)} * side_ + idx(p.x, lo_.x, hi_.x);
+  }
+
+  TriangulationView v_;
+  Vec2 lo_, hi_;
+  uint32_t side_ = 0;
+  std::vector<uint32_t> cells_;
+};
+
+template <typename RowFn>
+absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
+                                      const std::vector<Query>& queries,
+                                      QueryLimits limits, RowFn&& row_fn) {
+  const TriangulationView v = t.view();
+  const size_t nq = queries.size();
+  std::vector<std::vector<Hit>> rows(nq);
+  std::vector<uint8_t> truncated(nq, 0);
+  if (v.num_sites > 0) {
+    t.Run([&] {
+      std::unique_ptr<HintGrid> grid;
+      bool need_hints = false;
+      for (const Query& q : queries) need_hints |= q.start_site == kNoVertex;
+      if (need_hints) grid = std::make_unique<HintGrid>(v);
+      ParallelFor(
+          0, nq,
+          [&](size_t i) {
+            const Query& q = queries[i];
+            const uint32_t start =
+                q.start_site != kNoVertex ? q.start_site : grid->Hint(q.q);
+            const uint32_t root = WalkToNearestSite(v, q.q, start);
+            truncated[i] = row_fn(v, q, root, rows[i]) ? 1 : 0;
+          },
+          64);
+    });
+  }
+  NeighborLists out;
+  out.offsets.assign(nq + 1, 0);
+  for (size_t i = 0; i < nq; ++i) {
+    out.offsets[i + 1] = out.offsets[i] + rows[i].size();
+  }
+  if (limits.max_total_results && out.offsets[nq] > limits.max_total_results) {
+    return absl::ResourceExhaustedError(
+        absl::StrCat("query produced ", out.offsets[nq],
+                     " results, above the limit of ", limits.max_total_results));
+  }
+  out.ids.resize(out.offsets[nq]);
+  out.distances.resize(out.offsets[nq]);
+  ParallelFor(0, nq, [&](size_t i) {
+    uint64_t k = out.offsets[i];
+    for (const Hit& h : rows[i]) {
+      out.ids[k] = h.ext;
+      out.distances[k] = h.dist;
+      ++k;
+    }
+  });
+  out.truncated = std::move(truncated);
+  return out;
+}
+
+absl::StatusOr<NeighborLists> KNearestImpl(const Triangulation& t,
+                                           const std::vector<Query>& queries,
+                                           int k, QueryLimits limits) {
+  if (k <= 0) {
+    return absl::InvalidArgumentError(absl::StrCat("k = ", k, " must be > 0"));
+  }
+  const size_t want = static_cast<size_t>(k);
+  return RunRows(t, queries, limits,
+                 [want](const TriangulationView& v, const Query& q,
+                        uint32_t root, std::vector<Hit>& out) {
+                   auto later = [&](uint32_t a, uint32_t b) {
+                     return CompareCloser(q.q, v.pos[a], v.pos[b]) > 0;
+                   };
+                   std::priority_queue<uint32_t, std::vector<uint32_t>,
+                                       decltype(later)>
+                       heap(later);
+                   absl::flat_hash_set<uint32_t> seen;
+                   heap.push(root);
+                   seen.insert(root);
+                   while (!heap.empty() && out.size() < want) {
+                     const uint32_t s = heap.top();
+                     heap.pop();
+                     EmitSite(v, s, q.q, q.self_ext, out);
+                     v.ForEachNeighbor(s, [&](uint32_t w) {
+                       if (seen.insert(w).second) heap.push(w);
+                     });
+                   }
+                   if (out.size() > want) out.resize(want);
+                   return false;
+                 });
+}
+
+absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
+                                         const std::vector<Query>& queries,
+                                         double r, uint32_t max_results,
+                                         QueryLimits limits) {
+  if (absl::Status s = CheckRadius(r); !s.ok()) return s;
+  return RunRows(
+      t, queries, limits,
+      [r, max_results](const TriangulationView& v, const Query& q,
+                       uint32_t root, std::vector<Hit>& out) {
+        if (CompareDistanceToRadius(q.q, v.pos[root], r) > 0) return false;
+        std::vector<uint32_t> found, stack{root};
+        while (!stack.empty()) {
+          const uint32_t u = stack.back();
+          stack.pop_back();
+          found.push_back(u);
+          v.ForEachNeighbor(u, [&](uint32_t w) {
+            if (CompareDistanceToRadius(q.q, v.pos[w], r) <= 0 &&
+                FirstNeighbor(v, q.q, w, /*include_self=*/false) == u) {
+              stack.push_back(w);
+            }
+          });
+        }
+        std::sort(found.begin(), found.end(), [&](uint32_t a, uint32_t b) {
+          return CompareCloser(q.q, v.pos[a], v.pos[b]) < 0;
+        });
+        for (uint32_t s : found) EmitSite(v, s, q.q, q.self_ext, out);
+        if (max_results && out.size() > max_results) {
+          out.resize(max_results);
+          return true;
+        }
+        return false;
+      });
+}
+
+}  // namespace
+
+absl::StatusOr<NeighborLists> AllNearestNeighbors(const Triangulation& t) {
+  const TriangulationView v = t.view();
+  const uint32_t n = v.num_points;
+  NeighborLists out;
+  out.offsets.assign(size_t{n} + 1, 0);
+  std::vector<uint32_t> nn(n, kNoVertex);
+  std::vector<double> dist(n, 0.0);
+  t.Run([&] {
+    ParallelFor(0, n, [&](size_t ext) {
+      const uint32_t in = v.int_of_ext[ext];
+      const uint32_t site = v.rep[in];
+      // Coincident points are each other's nearest (smallest other id).
+      uint32_t best = kNoVertex;
+      for (uint32_t p = site; p != kNoVertex; p = v.dup_next[p]) {
+        const uint32_t e = v.ext_of_int[p];
+        if (e != ext && e < best) best = e;
+      }
+      if (best != kNoVertex) {
+        nn[ext] = best;
+        return;
+      }
+      const uint32_t w = FirstNeighbor(v, v.pos[site], site, false);
+      if (w == kNoVertex) return;
+      for (uint32_t p = w; p != kNoVertex; p = v.dup_next[p]) {
+        best = std::min(best, v.ext_of_int[p]);
+      }
+      nn[ext] = best;
+      dist[ext] = Distance(v.pos[site], v.pos[w]);
+    });
+  });
+  for (uint32_t i = 0; i < n; ++i) {
+    out.offsets[i + 1] = out.offsets[i] + (nn[i] != kNoVertex ? 1 : 0);
+  }
+  out.ids.reserve(out.offsets[n]);
+  out.distances.reserve(out.offsets[n]);
+  for (uint32_t i = 0; i < n; ++i) {
+    if (nn[i] == kNoVertex) continue;
+    out.ids.push_back(nn[i]);
+    out.distances.push_back(dist[i]);
+  }
+  out.truncated.assign(n, 0);
+  return out;
+}
+
+absl::StatusOr<NeighborLists> KNearest(const Triangulation& t,
+                                       absl::Span<const Vec2> queries, int k,
+                                       QueryLimits limits) {
+  auto qs = PositionQueries(queries);
+  if (!qs.ok()) return qs.status();
+  return KNearestImpl(t, *qs, k, limits);
+}
+
+absl::StatusOr<NeighborLists> KNearestOfPoints(const Triangulation& t,
+                                               absl::Span<const uint32_t> ids,
+                                               int k, bool exclude_self,
+                                               QueryLimits limits) {
+  auto qs = PointQueries(t, ids, exclude_self);
+  if (!qs.ok()) return qs.status();
+  return KNearestImpl(t, *qs, k, limits);
+}
+
+absl::StatusOr<NeighborLists> Nearest(const Triangulation& t,
+                                      absl::Span<const Vec2> queries) {
+  return KNearest(t, queries, 1);
+}
+
+absl::StatusOr<NeighborLists> WithinRadius(const Triangulation& t,
+                                           absl::Span<const Vec2> queries,
+                                           double r, uint32_t max_results,
+                                           QueryLimits limits) {
+  auto qs = PositionQueries(queries);
+  if (!qs.ok()) return qs.status();
+  return RadiusImpl(t, *qs, r, max_results, limits);
+}
+
+absl::StatusOr<NeighborLists> WithinRadiusOfPoints(
+    const Triangulation& t, absl::Span<const uint32_t> ids, double r,
+    bool exclude_self, uint32_t max_results, QueryLimits limits) {
+  auto qs = PointQueries(t, ids, exclude_self);
+  if (!qs.ok()) return qs.status();
+  return RadiusImpl(t, *qs, r, max_results, limits);
+}
+
+}  // namespace kinetri::core

@@ -1,0 +1,89 @@
+// Batched proximity queries on the Delaunay graph, results in CSR form.
+//
+// Order: for a query position q, points are ranked by exact squared distance
+// to q; ties between distinct positions go to the larger x, then the larger y
+// (CompareCloser: the distance order seen from q nudged by an infinitesimal),
+// and ties between coincident points go to the smaller id. Every query kind
+// returns exactly the first points of this order, so results are unique and
+// a brute-force scan with the same comparator reproduces them.
+//
+// Algorithms (all read-only, parallel over queries):
+//  * nearest site of q: greedy walk on the Delaunay graph from a hint; a
+//    Delaunay vertex that is not the nearest site always has a neighbour that
+//    is strictly closer (also under the nudged order), so the walk ends at it;
+//  * k nearest: best-first expansion from the nearest site: the (i+1)-th
+//    closest site is adjacent to one of the first i (each site has a strictly
+//    closer neighbour unless it is the first), so popping sites from a heap
+//    yields them in order;
+//  * fixed radius (FRNN) by reverse search, with no visited set: define
+//    parent(v) as v's Delaunay neighbour that comes first in the order. For
+//    every site v other than the nearest one, parent(v) comes strictly before
+//    v (greedy property above), hence is at distance <= |qv| <= r and also in
+//    the disk. So the parent links form a tree on the sites inside the disk,
+//    rooted at the nearest site, and a DFS from the root that descends to a
+//    neighbour w only when parent(w) is the current site reports every site
+//    in the disk exactly once.
+#ifndef KINETRI_CORE_QUERIES_H_
+#define KINETRI_CORE_QUERIES_H_
+
+#include <cstdint>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "absl/types/span.h"
+#include "core/triangulation.h"
+#include "core/vec2.h"
+
+namespace kinetri::core {
+
+// Compressed sparse rows: the neighbours of query i are
+// ids[offsets[i] .. offsets[i+1]) with matching distances, closest first.
+struct NeighborLists {
+  std::vector<uint64_t> offsets;   // size = queries + 1
+  std::vector<uint32_t> ids;       // external point ids
+  std::vector<double> distances;   // Euclidean, rounded to double
+  std::vector<uint8_t> truncated;  // per query: max_results cut the row
+
+  size_t num_queries() const { return offsets.empty() ? 0 : offsets.size() - 1; }
+  size_t row_size(size_t i) const { return offsets[i + 1] - offsets[i]; }
+};
+
+struct QueryLimits {
+  // Total result rows above this fail with RESOURCE_EXHAUSTED (0 = no limit).
+  uint64_t max_total_results = 0;
+};
+
+// Nearest other point of every point (the note's all-points query). A point
+// with no other point gets an empty row. Duplicates find each other at 0.
+absl::StatusOr<NeighborLists> AllNearestNeighbors(const Triangulation& t);
+
+// k nearest points of each position.
+absl::StatusOr<NeighborLists> KNearest(const Triangulation& t,
+                                       absl::Span<const Vec2> queries,
+                                       int k, QueryLimits limits = {});
+
+// k nearest points of each given point; exclude_self drops the point itself
+// (its coincident duplicates are still reported).
+absl::StatusOr<NeighborLists> KNearestOfPoints(const Triangulation& t,
+                                               absl::Span<const uint32_t> ids,
+                                               int k, bool exclude_self,
+                                               QueryLimits limits = {});
+
+// All points within distance r (inclusive) of each position, closest first,
+// at most max_results per row (0 = unlimited; a cut row is flagged).
+absl::StatusOr<NeighborLists> WithinRadius(const Triangulation& t,
+                                           absl::Span<const Vec2> queries,
+                                           double r, uint32_t max_results,
+                                           QueryLimits limits = {});
+
+absl::StatusOr<NeighborLists> WithinRadiusOfPoints(
+    const Triangulation& t, absl::Span<const uint32_t> ids, double r,
+    bool exclude_self, uint32_t max_results, QueryLimits limits = {});
+
+// The nearest point of each position (k = 1).
+absl::StatusOr<NeighborLists> Nearest(const Triangulation& t,
+                                      absl::Span<const Vec2> queries);
+
+}  // namespace kinetri::core
+
+#endif  // KINETRI_CORE_QUERIES_H_

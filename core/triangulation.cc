@@ -1,0 +1,603 @@
+// Kinetic Delaunay triangulation of a set of moving 2D points.
+#include "core/triangulation.h"
+
+#include <tbb/global_control.h>
+#include <tbb/parallel_reduce.h>
+#include <tbb/parallel_sort.h>
+#include <tbb/task_arena.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <numeric>
+
+#include "absl/strings/str_cat.h"
+#include "core/cgal_builder.h"
+#include "core/flip_rules.h"
+#include "core/parallel.h"
+#include "core/predicates.h"
+#include "core/spatial_order.h"
+#include "core/vertex_ops.h"
+
+namespace kinetri::core {
+namespace {
+
+absl::Status CheckCoordinate(double v, absl::string_view field, size_t index,
+                             const char* axis) {
+  if (std::isnan(v)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(field, "[", index, "].", axis, " is NaN"));
+  }
+  if (std::isinf(v)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(field, "[", index, "].", axis, " is infinite"));
+  }
+  if (!InExactDomain(v)) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        field, "[", index, "].", axis, " = ", v,
+        " is outside the exact range: 0 or magnitude in [2^-100, 2^100]"));
+  }
+  return absl::OkStatus();
+}
+
+absl::Status CheckPosition(const Vec2& p, absl::string_view field,
+                           size_t index) {
+  absl::Status s = CheckCoordinate(p.x, field, index, "x");
+  if (!s.ok()) return s;
+  return CheckCoordinate(p.y, field, index, "y");
+}
+
+}  // namespace
+
+DisplacementBatch DisplacementBatch::Dense(std::vector<Vec2> deltas) {
+  return {Mode::kDelta, {}, std::move(deltas)};
+}
+DisplacementBatch DisplacementBatch::Sparse(std::vector<uint32_t> ids,
+                                            std::vector<Vec2> deltas) {
+  return {Mode::kDelta, std::move(ids), std::move(deltas)};
+}
+DisplacementBatch DisplacementBatch::Absolute(std::vector<Vec2> positions) {
+  return {Mode::kAbsolute, {}, std::move(positions)};
+}
+DisplacementBatch DisplacementBatch::AbsoluteSparse(
+    std::vector<uint32_t> ids, std::vector<Vec2> positions) {
+  return {Mode::kAbsolute, std::move(ids), std::move(positions)};
+}
+
+const char* UpdatePathName(UpdatePath path) {
+  switch (path) {
+    case UpdatePath::kNoop:
+      return "noop";
+    case UpdatePath::kLocal:
+      return "local";
+    case UpdatePath::kSubdivided:
+      return "subdivided";
+    case UpdatePath::kReinserted:
+      return "reinserted";
+    case UpdatePath::kRebuilt:
+      return "rebuilt";
+  }
+  return "unknown";
+}
+
+Triangulation::Triangulation(Triangulation&&) noexcept = default;
+Triangulation& Triangulation::operator=(Triangulation&&) noexcept = default;
+Triangulation::~Triangulation() = default;
+
+int Triangulation::num_threads() const {
+  return arena_ ? arena_->max_concurrency() : 1;
+}
+
+void Triangulation::RunImpl(const std::function<void()>& fn) const {
+  arena_->execute(fn);
+}
+
+absl::StatusOr<Triangulation> Triangulation::Create(
+    absl::Span<const Vec2> points, const TriangulationOptions& options) {
+  if (points.size() >= (size_t{1} << 29)) {
+    return absl::ResourceExhaustedError(absl::StrCat(
+        "points: ", points.size(), " points exceed the limit of 2^29"));
+  }
+  if (options.num_threads < 0) {
+    return absl::InvalidArgumentError("num_threads must be >= 0");
+  }
+  if (options.max_subdivision_depth < 0 || options.max_subdivision_depth > 16) {
+    return absl::InvalidArgumentError(
+        "max_subdivision_depth must be in [0, 16]");
+  }
+  for (size_t i = 0; i < points.size(); ++i) {
+    absl::Status s = CheckPosition(points[i], "points", i);
+    if (!s.ok()) return s;
+  }
+  Triangulation t;
+  t.options_ = options;
+  t.arena_ = options.num_threads > 0
+                 ? std::make_unique<tbb::task_arena>(options.num_threads)
+                 : std::make_unique<tbb::task_arena>();
+  std::vector<Vec2> copy(points.begin(), points.end());
+  t.Run([&] { t.Rebuild(copy); });
+  return t;
+}
+
+std::vector<Vec2> Triangulation::Positions() const {
+  std::vector<Vec2> out(pos_.size());
+  for (size_t i = 0; i < pos_.size(); ++i) out[ext_of_int_[i]] = pos_[i];
+  return out;
+}
+
+TriangulationView Triangulation::view() const {
+  TriangulationView v;
+  v.pos = pos_.data();
+  v.ext_of_int = ext_of_int_.data();
+  v.int_of_ext = int_of_ext_.data();
+  v.rep = rep_.data();
+  v.dup_next = dup_next_.data();
+  v.sites = sites_.data();
+  v.num_points = size();
+  v.num_sites = num_sites();
+  v.mesh = mesh_.view();
+  if (mesh_.empty()) v.mesh.num_half_edges = 0;
+  v.vertex_edge = mesh_.vertex_edge().data();
+  v.line = line_.data();
+  v.line_rank = line_rank_.data();
+  return v;
+}
+
+void Triangulation::Rebuild(const std::vector<Vec2>& positions_by_ext) {
+  const uint32_t n = static_cast<uint32_t>(positions_by_ext.size());
+  ext_of_int_ = HilbertOrder(positions_by_ext);
+  int_of_ext_.assign(n, 0);
+  pos_.resize(n);
+  for (uint32_t i = 0; i < n; ++i) {
+    int_of_ext_[ext_of_int_[i]] = i;
+    pos_[i] = positions_by_ext[ext_of_int_[i]];
+  }
+  // Group coincident points: lexicographic sort with id as tie-break.
+  std::vector<uint32_t> by_pos(n);
+  std::iota(by_pos.begin(), by_pos.end(), 0u);
+  tbb::parallel_sort(by_pos.begin(), by_pos.end(),
+                     [&](uint32_t a, uint32_t b) {
+                       if (pos_[a] != pos_[b]) return LexLess(pos_[a], pos_[b]);
+                       return a < b;
+                     });
+  rep_.assign(n, kNoVertex);
+  dup_next_.assign(n, kNoVertex);
+  has_duplicates_ = false;
+  for (uint32_t k = 0; k < n;) {
+    uint32_t j = k + 1;
+    while (j < n && pos_[by_pos[j]] == pos_[by_pos[k]]) ++j;
+    for (uint32_t m = k; m < j; ++m) {
+      rep_[by_pos[m]] = by_pos[k];
+      if (m + 1 < j) dup_next_[by_pos[m]] = by_pos[m + 1];
+    }
+    if (j - k > 1) has_duplicates_ = true;
+    k = j;
+  }
+  sites_.clear();
+  for (uint32_t i = 0; i < n; ++i) {
+    if (rep_[i] == i) sites_.push_back(i);
+  }
+  mesh_ = BuildDelaunayWithCgal(pos_, sites_);
+  removal_touched_.clear();
+  line_.clear();
+  line_rank_.clear();
+  if (mesh_.empty()) {
+    line_ = sites_;
+    std::sort(line_.begin(), line_.end(), [&](uint32_t a, uint32_t b) {
+      return LexLess(pos_[a], pos_[b]);
+    });
+    line_rank_.assign(n, kNoVertex);
+    for (uint32_t r = 0; r < line_.size(); ++r) line_rank_[line_[r]] = r;
+  }
+  baseline_span_ = MeanEdgeSpan();
+}
+
+double Triangulation::MeanEdgeSpan() const {
+  if (mesh_.empty()) return 0.0;
+  const MeshView m = mesh_.view();
+  struct Acc {
+    double sum = 0.0;
+    uint64_t count = 0;
+  };
+  const Acc acc = tbb::parallel_reduce(
+      tbb::blocked_range<size_t>(0, mesh_.num_half_edges(), 1 << 14), Acc{},
+      [&](const tbb::blocked_range<size_t>& r, Acc a) {
+        for (size_t e = r.begin(); e != r.end(); ++e) {
+          const uint32_t u = m.origin[e], v = m.Dest(static_cast<uint32_t>(e));
+          if (u == kInfiniteVertex || v == kInfiniteVertex || u > v) continue;
+          a.sum += static_cast<double>(v - u);
+          ++a.count;
+        }
+        return a;
+      },
+      [](Acc a, const Acc& b) {
+        a.sum += b.sum;
+        a.count += b.count;
+        return a;
+      });
+  return acc.count ? acc.sum / static_cast<double>(acc.count) : 0.0;
+}
+
+void Triangulation::Renumber() {
+  const uint32_t n = size();
+  const std::vector<uint32_t> old_of_new = HilbertOrder(pos_);
+  std::vector<uint32_t> new_of_old(n);
+  for (uint32_t i = 0; i < n; ++i) new_of_old[old_of_new[i]] = i;
+  std::vector<Vec2> pos(n);
+  std::vector<uint32_t> ext(n), rep(n), dup(n);
+  ParallelFor(0, n, [&](size_t i) {
+    const uint32_t o = old_of_new[i];
+    pos[i] = pos_[o];
+    ext[i] = ext_of_int_[o];
+    rep[i] = new_of_old[rep_[o]];
+    dup[i] = dup_next_[o] == kNoVertex ? kNoVertex : new_of_old[dup_next_[o]];
+  });
+  pos_ = std::move(pos);
+  ext_of_int_ = std::move(ext);
+  rep_ = std::move(rep);
+  dup_next_ = std::move(dup);
+  for (uint32_t i = 0; i < n; ++i) int_of_ext_[ext_of_int_[i]] = i;
+  // Coincident points share a Hilbert key and keep their relative order, so
+  // each site's representative is still its smallest id and chains stay
+  // ascending.
+  sites_.clear();
+  for (uint32_t i = 0; i < n; ++i) {
+    if (rep_[i] == i) sites_.push_back(i);
+  }
+  if (!mesh_.empty()) {
+    mesh_.RenumberVertices(new_of_old);
+  } else {
+    for (uint32_t& v : line_) v = new_of_old[v];
+    line_rank_.assign(n, kNoVertex);
+    for (uint32_t r = 0; r < line_.size(); ++r) line_rank_[line_[r]] = r;
+  }
+  baseline_span_ = MeanEdgeSpan();
+}
+
+bool Triangulation::TryStep(const std::vector<Vec2>& to,
+                            const std::vector<uint32_t>* moved,
+                            const std::vector<uint32_t>* seeds, int depth,
+                            StepReport* report,
+                            std::vector<uint32_t>* stuck_vertices) {
+  std::vector<uint32_t> invalid =
+      KineticExecutor::FindInvalidTriangles(mesh_, to, moved);
+  std::vector<uint32_t> touched, log, stuck;
+  FlipCounts counts;
+  const bool fixed = KineticExecutor::Fix(mesh_, to, std::move(invalid),
+                                          scratch_, &counts, &touched, &log,
+                                          &stuck);
+  if (fixed) {
+    report->flips += counts;
+    if (seeds == nullptr) {
+      KineticExecutor::Legalize(mesh_, to, nullptr, scratch_, &report->flips);
+    } else {
+      touched.insert(touched.end(), seeds->begin(), seeds->end());
+      std::sort(touched.begin(), touched.end());
+      touched.erase(std::unique(touched.begin(), touched.end()),
+                    touched.end());
+      KineticExecutor::Legalize(mesh_, to, &touched, scratch_, &report->flips);
+    }
+    pos_ = to;
+    ++report->substeps;
+    return true;
+  }
+  ++report->failed_attempts;
+  // Vertices of the triangles fixing could not repair: candidates for
+  // re-insertion if splitting the step does not help.
+  {
+    const MeshView m = mesh_.view();
+    stuck_vertices->clear();
+    for (uint32_t t : stuck) {
+      for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
+        const uint32_t v = m.origin[e];
+        if (v != kInfiniteVertex && v != kNoVertex) {
+          stuck_vertices->push_back(v);
+        }
+      }
+    }
+  }
+  KineticExecutor::Undo(mesh_, log);
+  if (depth >= options_.max_subdivision_depth) return false;
+  // Split: move halfway, then the rest.
+  std::vector<Vec2> mid = pos_;
+  auto halfway = [&](size_t i) {
+    const Vec2& a = pos_[i];
+    const Vec2& b = to[i];
+    Vec2 h{a.x + 0.5 * (b.x - a.x), a.y + 0.5 * (b.y - a.y)};
+    if (!InExactDomain(h.x) || !InExactDomain(h.y)) h = b;
+    mid[i] = h;
+  };
+  ParallelFor(0, mid.size(), halfway);
+  // Coincident points of one site move together.
+  if (has_duplicates_) {
+    for (uint32_t i = 0; i < mid.size(); ++i) {
+      if (rep_[i] != i) mid[i] = mid[rep_[i]];
+    }
+  }
+  std::vector<uint32_t> seeds_now;
+  if (seeds != nullptr) {
+    seeds_now = KineticExecutor::TrianglesAround(mesh_, *moved);
+  }
+  if (!TryStep(mid, moved, seeds ? &seeds_now : nullptr, depth + 1, report,
+               stuck_vertices)) {
+    return false;
+  }
+  if (seeds != nullptr) {
+    seeds_now = KineticExecutor::TrianglesAround(mesh_, *moved);
+  }
+  return TryStep(to, moved, seeds ? &seeds_now : nullptr, depth + 1, report,
+                 stuck_vertices);
+}
+
+bool Triangulation::InsertVertex(uint32_t v, uint32_t hint_vertex,
+                                 StepReport* report) {
+  const auto& ve = mesh_.vertex_edge();
+  uint32_t start = 0;
+  if (hint_vertex != kNoVertex && hint_vertex < ve.size() &&
+      ve[hint_vertex] != kNoEdge) {
+    start = TriangleOf(ve[hint_vertex]);
+  } else {
+    while (start < mesh_.num_triangles() && mesh_.view().IsFree(start)) ++start;
+  }
+  const VertexOps::Location loc =
+      VertexOps::Locate(mesh_, pos_, pos_[v], start);
+  if (loc.triangle == kNoEdge) return false;
+  if (loc.coincident != kNoVertex) {
+    // Join the existing site: v and the points hanging off it become
+    // members of loc.coincident's chain.
+    const uint32_t w = loc.coincident;
+    uint32_t tail = v;
+    for (uint32_t p = v; p != kNoVertex; p = dup_next_[p]) {
+      rep_[p] = w;
+      tail = p;
+    }
+    dup_next_[tail] = dup_next_[w];
+    dup_next_[w] = v;
+    has_duplicates_ = true;
+    return true;
+  }
+  const auto tris = VertexOps::Split(mesh_, loc.triangle, v);
+  const std::vector<uint32_t> just_v = {v};
+  std::vector<uint32_t> invalid =
+      KineticExecutor::FindInvalidTriangles(mesh_, pos_, &just_v);
+  std::vector<uint32_t> touched(tris.begin(), tris.end());
+  if (!KineticExecutor::Fix(mesh_, pos_, std::move(invalid), scratch_,
+                            &report->flips, &touched, nullptr, nullptr)) {
+    return false;
+  }
+  std::vector<uint32_t> seeds = KineticExecutor::TrianglesAround(mesh_, just_v);
+  seeds.insert(seeds.end(), touched.begin(), touched.end());
+  std::sort(seeds.begin(), seeds.end());
+  seeds.erase(std::unique(seeds.begin(), seeds.end()), seeds.end());
+  KineticExecutor::Legalize(mesh_, pos_, &seeds, scratch_, &report->flips);
+  return true;
+}
+
+bool Triangulation::LocalUpdate(const std::vector<Vec2>& next,
+                                const std::vector<uint32_t>& moved_points,
+                                StepReport* report, std::string* reason) {
+  const uint32_t n = size();
+  // 1. Coincident points that part from their site are detached and
+  //    inserted again at the end.
+  std::vector<uint32_t> reinsert;
+  if (has_duplicates_) {
+    std::vector<uint8_t> leave(n, 0);
+    bool any = false;
+    for (uint32_t i = 0; i < n; ++i) {
+      if (rep_[i] != i && next[i] != next[rep_[i]]) leave[i] = any = 1;
+    }
+    if (any) {
+      for (uint32_t r : sites_) {
+        uint32_t last = r;
+        for (uint32_t p = dup_next_[r]; p != kNoVertex;) {
+          const uint32_t following = dup_next_[p];
+          if (leave[p]) {
+            dup_next_[p] = kNoVertex;
+            rep_[p] = p;
+            reinsert.push_back(p);
+          } else {
+            dup_next_[last] = p;
+            last = p;
+          }
+          p = following;
+        }
+        dup_next_[last] = kNoVertex;
+      }
+      // Detached points that land together re-form a site on insertion.
+    }
+  }
+  // 2. Kinetic step; vertices fixing cannot repair are removed and retried.
+  const uint32_t max_removed =
+      std::max<uint32_t>(64, static_cast<uint32_t>(sites_.size() / 8));
+  std::vector<uint32_t> removed;
+  std::vector<uint32_t> hints(n, kNoVertex);
+  const auto& ve = mesh_.vertex_edge();
+  bool ok = false;
+  for (int attempt = 0; attempt < 8; ++attempt) {
+    std::vector<uint32_t> moved;
+    for (uint32_t i : moved_points) {
+      if (rep_[i] == i && ve[i] != kNoEdge) moved.push_back(i);
+    }
+    const bool sparse = moved.size() * 4 < n;
+    std::vector<uint32_t> seeds;
+    if (sparse) {
+      seeds = KineticExecutor::TrianglesAround(mesh_, moved);
+      seeds.insert(seeds.end(), removal_touched_.begin(),
+                   removal_touched_.end());
+    }
+    std::vector<uint32_t> stuck;
+    if (TryStep(next, sparse ? &moved : nullptr, sparse ? &seeds : nullptr, 0,
+                report, &stuck)) {
+      ok = true;
+      break;
+    }
+    std::sort(stuck.begin(), stuck.end());
+    stuck.erase(std::unique(stuck.begin(), stuck.end()), stuck.end());
+    if (stuck.empty() || removed.size() + stuck.size() > max_removed ||
+        sites_.size() - removed.size() - stuck.size() < 8) {
+      *reason = absl::StrCat("fixing stuck; ", stuck.size(),
+                             " vertices to re-insert exceed the local budget");
+      return false;
+    }
+    for (uint32_t v : stuck) {
+      if (ve[v] == kNoEdge) continue;
+      hints[v] = mesh_.view().Dest(ve[v]);
+      uint64_t flips = 0;
+      if (!VertexOps::Remove(mesh_, pos_, v, &removal_touched_, &flips)) {
+        *reason = "could not remove a vertex for re-insertion";
+        return false;
+      }
+      report->flips.interior_fix += flips;
+      removed.push_back(v);
+    }
+  }
+  removal_touched_.clear();
+  if (!ok) {
+    *reason = "fixing stuck after repeated re-insertion rounds";
+    return false;
+  }
+  // 3. Insert removed vertices and detached points at their new positions.
+  pos_ = next;
+  reinsert.insert(reinsert.end(), removed.begin(), removed.end());
+  std::sort(reinsert.begin(), reinsert.end());
+  for (uint32_t v : reinsert) {
+    uint32_t hint = hints[v];
+    if (hint == kInfiniteVertex || hint == kNoVertex || rep_[hint] != hint) {
+      hint = kNoVertex;
+    }
+    if (!InsertVertex(v, hint, report)) {
+      *reason = "re-insertion failed";
+      return false;
+    }
+  }
+  report->reinserted = static_cast<uint32_t>(reinsert.size());
+  if (mesh_.has_free_triangles()) mesh_.Compact();
+  sites_.clear();
+  has_duplicates_ = false;
+  for (uint32_t i = 0; i < n; ++i) {
+    if (rep_[i] == i) sites_.push_back(i);
+    if (dup_next_[i] != kNoVertex) has_duplicates_ = true;
+  }
+  return true;
+}
+
+absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
+    const DisplacementBatch& batch) {
+  const auto start = std::chrono::steady_clock::now();
+  const uint32_t n = size();
+  const bool dense = batch.ids.empty();
+  const char* field =
+      batch.mode == DisplacementBatch::Mode::kDelta ? "deltas" : "positions";
+  if (dense && batch.values.size() != n) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(field, ": expected ", n, " values (one per point), got ",
+                     batch.values.size()));
+  }
+  if (!dense && batch.values.size() != batch.ids.size()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(field, ": ", batch.values.size(), " values for ",
+                     batch.ids.size(), " ids"));
+  }
+  // Validate everything before touching state.
+  std::vector<Vec2> next = pos_;
+  std::vector<uint8_t> seen;
+  if (!dense) seen.assign(n, 0);
+  const size_t count = batch.values.size();
+  for (size_t i = 0; i < count; ++i) {
+    const Vec2& v = batch.values[i];
+    if (std::isnan(v.x) || std::isnan(v.y) || std::isinf(v.x) ||
+        std::isinf(v.y)) {
+      return CheckPosition(v, field, i);
+    }
+    uint32_t ext = static_cast<uint32_t>(i);
+    if (!dense) {
+      ext = batch.ids[i];
+      if (ext >= n) {
+        return absl::NotFoundError(absl::StrCat(
+            "ids[", i, "] = ", ext, ": no such point (size ", n, ")"));
+      }
+      if (seen[ext]) {
+        return absl::InvalidArgumentError(
+            absl::StrCat("ids[", i, "] = ", ext, " appears twice"));
+      }
+      seen[ext] = 1;
+    }
+    const uint32_t in = int_of_ext_[ext];
+    const Vec2 p = batch.mode == DisplacementBatch::Mode::kDelta
+                       ? Vec2{pos_[in].x + v.x, pos_[in].y + v.y}
+                       : v;
+    absl::Status s = CheckPosition(p, "new position of point", ext);
+    if (!s.ok()) return s;
+    next[in] = p;
+  }
+
+  StepReport report;
+  std::vector<uint32_t> moved;
+  for (uint32_t i = 0; i < n; ++i) {
+    if (next[i] != pos_[i]) moved.push_back(i);
+  }
+  report.moved_points = static_cast<uint32_t>(moved.size());
+  ++steps_;
+  if (moved.empty()) {
+    report.num_sites = num_sites();
+    return report;
+  }
+
+  Run([&] {
+    std::string reason;
+    bool ok = false;
+    if (mesh_.empty()) {
+      reason = "fewer than two dimensions (line mode)";
+    } else {
+      ok = LocalUpdate(next, moved, &report, &reason);
+    }
+    if (ok) {
+      report.path = report.reinserted > 0    ? UpdatePath::kReinserted
+                    : report.substeps > 1 ? UpdatePath::kSubdivided
+                                          : UpdatePath::kLocal;
+      if (options_.renumber_check_interval > 0 &&
+          steps_ % options_.renumber_check_interval == 0 &&
+          MeanEdgeSpan() > options_.renumber_stretch * baseline_span_ + 1.0) {
+        Renumber();
+        report.renumbered = true;
+      }
+    } else {
+      std::vector<Vec2> by_ext(n);
+      for (uint32_t i = 0; i < n; ++i) by_ext[ext_of_int_[i]] = next[i];
+      Rebuild(by_ext);
+      report.path = UpdatePath::kRebuilt;
+      report.fallback_reason = reason;
+      report.renumbered = true;
+    }
+  });
+  report.num_sites = num_sites();
+  report.seconds = std::chrono::duration<double>(
+                       std::chrono::steady_clock::now() - start)
+                       .count();
+  return report;
+}
+
+std::vector<std::pair<uint32_t, uint32_t>> Triangulation::Edges() const {
+  std::vector<std::pair<uint32_t, uint32_t>> out;
+  auto add = [&](uint32_t a, uint32_t b) {
+    uint32_t x = ext_of_int_[a], y = ext_of_int_[b];
+    if (x > y) std::swap(x, y);
+    out.emplace_back(x, y);
+  };
+  if (mesh_.empty()) {
+    for (size_t r = 1; r < line_.size(); ++r) add(line_[r - 1], line_[r]);
+  } else {
+    const MeshView m = mesh_.view();
+    for (uint32_t e = 0; e < mesh_.num_half_edges(); ++e) {
+      const uint32_t a = m.origin[e], b = m.Dest(e);
+      if (a == kInfiniteVertex || b == kInfiniteVertex || e > m.twin[e]) {
+        continue;
+      }
+      add(a, b);
+    }
+  }
+  std::sort(out.begin(), out.end());
+  return out;
+}
+
+}  // namespace kinetri::core

@@ -1,0 +1,170 @@
+// Kinetic Delaunay triangulation of a set of moving 2D points.
+//
+// Triangulation owns the points, their mesh and their numbering. After
+// Create() and after every successful ApplyDisplacements() it holds the exact
+// Delaunay triangulation of the current positions (with the symbolic
+// perturbation of core/predicates.h for cocircular points).
+//
+//  * Points keep the caller's ids 0..n-1 ("external"). Internally they are
+//    numbered along a Hilbert curve for locality; the numbering is refreshed
+//    when edges stretch too far in it.
+//  * Exactly coincident points form one "site": the smallest internal id is
+//    the mesh vertex, the others hang off it (dup_next chain) and are still
+//    returned by queries. Sites separate again when the points move apart.
+//  * Fewer than three sites, or all sites collinear, is the "line" mode: the
+//    Delaunay graph is then the path through the sites in (x, y) order.
+//
+// An update first tries the local path (fixing + legalizing, core/kinetic.h)
+// and splits the step into halves up to max_subdivision_depth times when
+// fixing gets stuck. Past that it removes the vertices of the stuck triangles
+// (core/vertex_ops.h), redoes the step without them and inserts them at their
+// new positions; only when that exceeds a budget (1/8 of the sites) does it
+// rebuild with CGAL. StepReport tells which path was taken.
+#ifndef KINETRI_CORE_TRIANGULATION_H_
+#define KINETRI_CORE_TRIANGULATION_H_
+
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include <tbb/task_arena.h>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "absl/types/span.h"
+#include "core/kinetic.h"
+#include "core/mesh.h"
+#include "core/triangulation_view.h"
+#include "core/vec2.h"
+
+namespace kinetri::core {
+
+struct TriangulationOptions {
+  int num_threads = 0;            // 0: all cores
+  int max_subdivision_depth = 1;  // a step is split into at most 2^depth
+  double renumber_stretch = 2.0;  // renumber when edge span grows this much
+  int renumber_check_interval = 8;  // steps between locality checks
+};
+
+// A batch of motion. `ids` empty means dense (one value per point, in id
+// order); otherwise values[i] applies to point ids[i] (ids must be distinct).
+struct DisplacementBatch {
+  enum class Mode { kDelta, kAbsolute };
+  Mode mode = Mode::kDelta;
+  std::vector<uint32_t> ids;
+  std::vector<Vec2> values;
+
+  static DisplacementBatch Dense(std::vector<Vec2> deltas);
+  static DisplacementBatch Sparse(std::vector<uint32_t> ids,
+                                  std::vector<Vec2> deltas);
+  static DisplacementBatch Absolute(std::vector<Vec2> positions);
+  static DisplacementBatch AbsoluteSparse(std::vector<uint32_t> ids,
+                                          std::vector<Vec2> positions);
+};
+
+enum class UpdatePath { kNoop, kLocal, kSubdivided, kReinserted, kRebuilt };
+const char* UpdatePathName(UpdatePath path);
+
+struct StepReport {
+  UpdatePath path = UpdatePath::kNoop;
+  uint32_t moved_points = 0;
+  uint32_t substeps = 0;  // local sub-steps taken (1 = not split)
+  uint32_t failed_attempts = 0;  // fixing attempts that got stuck
+  uint32_t reinserted = 0;  // vertices removed and inserted again locally
+  FlipCounts flips;
+  std::string fallback_reason;  // why the step was rebuilt, if it was
+  bool renumbered = false;
+  uint32_t num_sites = 0;   // distinct positions after the step
+  double seconds = 0.0;
+};
+
+class Triangulation {
+ public:
+  // Builds the Delaunay triangulation of `points` (id = index).
+  static absl::StatusOr<Triangulation> Create(
+      absl::Span<const Vec2> points, const TriangulationOptions& options = {});
+
+  Triangulation(Triangulation&&) noexcept;
+  Triangulation& operator=(Triangulation&&) noexcept;
+  ~Triangulation();
+
+  // Moves the points. On error nothing changes.
+  absl::StatusOr<StepReport> ApplyDisplacements(const DisplacementBatch& batch);
+
+  // Checks topology, orientation, hull and the empty-circle property of every
+  // edge exactly; also the point/site bookkeeping.
+  absl::Status Validate() const;
+
+  uint32_t size() const { return static_cast<uint32_t>(pos_.size()); }
+  uint32_t num_sites() const { return static_cast<uint32_t>(sites_.size()); }
+  bool is_planar() const { return !mesh_.empty(); }
+  int num_threads() const;
+  const TriangulationOptions& options() const { return options_; }
+
+  Vec2 Position(uint32_t id) const { return pos_[int_of_ext_[id]]; }
+  std::vector<Vec2> Positions() const;  // by external id
+
+  // Delaunay edges as pairs of external ids (of each site's smallest-id
+  // point), each pair ordered, the list sorted.
+  std::vector<std::pair<uint32_t, uint32_t>> Edges() const;
+
+  // Read-only view for the query engine and executors.
+  TriangulationView view() const;
+
+  // Runs fn inside this triangulation's thread arena.
+  template <typename Fn>
+  void Run(Fn&& fn) const;
+
+ private:
+  Triangulation() = default;
+  void RunImpl(const std::function<void()>& fn) const;
+
+  // Full construction from positions in external order.
+  void Rebuild(const std::vector<Vec2>& positions_by_ext);
+  // Local update attempt from pos_ to `to`; false if it must fall back.
+  // On failure the mesh is back to a valid state for pos_ and
+  // stuck_vertices lists vertices of the triangles that could not be fixed.
+  bool TryStep(const std::vector<Vec2>& to,
+               const std::vector<uint32_t>* moved,
+               const std::vector<uint32_t>* seeds, int depth,
+               StepReport* report, std::vector<uint32_t>* stuck_vertices);
+  // Kinetic path with re-insertion; false (with reason) means rebuild.
+  bool LocalUpdate(const std::vector<Vec2>& next,
+                   const std::vector<uint32_t>& moved_points,
+                   StepReport* report, std::string* reason);
+  bool InsertVertex(uint32_t v, uint32_t hint_vertex, StepReport* report);
+  double MeanEdgeSpan() const;
+  void Renumber();
+
+  TriangulationOptions options_;
+  std::unique_ptr<tbb::task_arena> arena_;
+
+  std::vector<Vec2> pos_;              // by internal id
+  std::vector<uint32_t> ext_of_int_;
+  std::vector<uint32_t> int_of_ext_;
+  std::vector<uint32_t> rep_;          // site representative, internal id
+  std::vector<uint32_t> dup_next_;     // next point of the same site
+  bool has_duplicates_ = false;
+  std::vector<uint32_t> sites_;        // representatives, ascending
+
+  Mesh mesh_;                          // empty in line mode
+  std::vector<uint32_t> line_;         // line mode: sites in (x, y) order
+  std::vector<uint32_t> line_rank_;    // line mode: rank of each site
+
+  FlipScratch scratch_;
+  std::vector<uint32_t> removal_touched_;
+  double baseline_span_ = 0.0;
+  uint64_t steps_ = 0;
+};
+
+template <typename Fn>
+void Triangulation::Run(Fn&& fn) const {
+  RunImpl(std::function<void()>(std::forward<Fn>(fn)));
+}
+
+}  // namespace kinetri::core
+
+#endif  // KINETRI_CORE_TRIANGULATION_H_

@@ -1,0 +1,322 @@
+// Motion sequences: after every step the mesh is valid and equals CGAL's DT.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <functional>
+#include <random>
+
+#include "core/triangulation.h"
+#include "tests/core/test_util.h"
+
+namespace kinetri::core {
+namespace {
+
+using testing::CgalDelaunayEdges;
+using testing::EdgesAsPositions;
+
+struct PathTally {
+  int local = 0, subdivided = 0, rebuilt = 0, noop = 0;
+  void Add(const StepReport& r) {
+    switch (r.path) {
+      case UpdatePath::kLocal:
+        ++local;
+        break;
+      case UpdatePath::kSubdivided:
+        ++subdivided;
+        break;
+      case UpdatePath::kRebuilt:
+        ++rebuilt;
+        break;
+      case UpdatePath::kNoop:
+        ++noop;
+        break;
+    }
+  }
+};
+
+// Applies `steps` batches from make_batch and checks against CGAL each time.
+PathTally RunSequence(Triangulation& t, int steps,
+                      const std::function<DisplacementBatch(int)>& make_batch) {
+  PathTally tally;
+  for (int s = 0; s < steps; ++s) {
+    auto report = t.ApplyDisplacements(make_batch(s));
+    EXPECT_TRUE(report.ok()) << report.status();
+    if (!report.ok()) return tally;
+    tally.Add(*report);
+    const absl::Status v = t.Validate();
+    EXPECT_TRUE(v.ok()) << "step " << s << ": " << v;
+    const auto pts = t.Positions();
+    EXPECT_EQ(EdgesAsPositions(t), CgalDelaunayEdges(pts)) << "step " << s;
+    if (!v.ok()) return tally;
+  }
+  return tally;
+}
+
+DisplacementBatch Brownian(size_t n, double sigma, std::mt19937_64& rng) {
+  std::normal_distribution<double> g(0.0, sigma);
+  std::vector<Vec2> d(n);
+  for (auto& v : d) v = {g(rng), g(rng)};
+  return DisplacementBatch::Dense(std::move(d));
+}
+
+class BrownianTest : public ::testing::TestWithParam<double> {};
+
+TEST_P(BrownianTest, EveryStepIsExactDelaunay) {
+  const size_t n = 2000;
+  const double spacing = 1.0 / std::sqrt(double(n));
+  auto t = Triangulation::Create(testing::UniformPoints(n, 11));
+  ASSERT_TRUE(t.ok());
+  std::mt19937_64 rng(12);
+  const double f = GetParam();
+  const PathTally tally = RunSequence(*t, 12, [&](int) {
+    return Brownian(n, f * spacing, rng);
+  });
+  if (f <= 0.1) {
+    // Small motion must be handled locally, never by rebuilding.
+    EXPECT_EQ(tally.rebuilt, 0);
+  }
+}
+
+INSTANTIATE_TEST_SUITE_P(Spacings, BrownianTest,
+                         ::testing::Values(0.01, 0.1, 1.0, 3.0));
+
+TEST(Kinetic, ShearFlow) {
+  const size_t n = 2000;
+  auto pts = testing::UniformPoints(n, 21);
+  auto t = Triangulation::Create(pts);
+  ASSERT_TRUE(t.ok());
+  const PathTally tally = RunSequence(*t, 15, [&](int) {
+    std::vector<Vec2> d(n);
+    const auto cur = t->Positions();
+    for (size_t i = 0; i < n; ++i) d[i] = {0.02 * (cur[i].y - 0.5), 0.0};
+    return DisplacementBatch::Dense(std::move(d));
+  });
+  EXPECT_GT(tally.local + tally.subdivided, 0);
+}
+
+TEST(Kinetic, ClusteringAggregationAndDispersal) {
+  // DLA-like: points drift onto a few attractors (clusters tighten until
+  // points nearly coincide), then disperse again.
+  const size_t n = 1500;
+  auto t = Triangulation::Create(testing::UniformPoints(n, 31));
+  ASSERT_TRUE(t.ok());
+  const std::vector<Vec2> attractors = {{0.2, 0.3}, {0.7, 0.8}, {0.6, 0.2}};
+  std::mt19937_64 rng(32);
+  std::normal_distribution<double> g(0.0, 1e-3);
+  RunSequence(*t, 16, [&](int s) {
+    const auto cur = t->Positions();
+    std::vector<Vec2> d(n);
+    const double pull = s < 10 ? 0.35 : -0.3;
+    for (size_t i = 0; i < n; ++i) {
+      const Vec2& a = attractors[i % attractors.size()];
+      d[i] = {pull * (a.x - cur[i].x) + g(rng), pull * (a.y - cur[i].y) + g(rng)};
+    }
+    return DisplacementBatch::Dense(std::move(d));
+  });
+}
+
+TEST(Kinetic, HullExpandsAndContracts) {
+  const size_t n = 1000;
+  auto t = Triangulation::Create(testing::UniformPoints(n, 41, 2.0, -1.0));
+  ASSERT_TRUE(t.ok());
+  std::mt19937_64 rng(42);
+  std::normal_distribution<double> g(0.0, 0.01);
+  RunSequence(*t, 12, [&](int s) {
+    const auto cur = t->Positions();
+    const double k = s % 2 ? 1.3 : 0.8;
+    std::vector<Vec2> p(n);
+    for (size_t i = 0; i < n; ++i) {
+      p[i] = {cur[i].x * k + g(rng), cur[i].y * (2.0 - k) + g(rng)};
+    }
+    return DisplacementBatch::Absolute(std::move(p));
+  });
+}
+
+TEST(Kinetic, SparseUpdates) {
+  const size_t n = 3000;
+  auto t = Triangulation::Create(testing::UniformPoints(n, 51));
+  ASSERT_TRUE(t.ok());
+  std::mt19937_64 rng(52);
+  std::uniform_int_distribution<uint32_t> pick(0, n - 1);
+  std::normal_distribution<double> g(0.0, 0.01);
+  const PathTally tally = RunSequence(*t, 20, [&](int) {
+    std::vector<uint32_t> ids;
+    std::vector<Vec2> d;
+    std::vector<bool> used(n, false);
+    for (int k = 0; k < 60; ++k) {
+      const uint32_t id = pick(rng);
+      if (used[id]) continue;
+      used[id] = true;
+      ids.push_back(id);
+      d.push_back({g(rng), g(rng)});
+    }
+    return DisplacementBatch::Sparse(std::move(ids), std::move(d));
+  });
+  EXPECT_EQ(tally.rebuilt, 0);
+}
+
+TEST(Kinetic, LatticeStaysCocircularUnderExactMotion) {
+  auto pts = testing::Lattice(25, 0.125);
+  const size_t n = pts.size();
+  auto t = Triangulation::Create(pts);
+  ASSERT_TRUE(t.ok());
+  std::mt19937_64 rng(61);
+  std::uniform_int_distribution<int> u(-2, 2);
+  RunSequence(*t, 12, [&](int s) {
+    std::vector<Vec2> d(n);
+    if (s % 3 == 0) {
+      for (auto& v : d) v = {0.0625, -0.125};  // rigid translation
+    } else {
+      // Every point moves by a multiple of 1/16: still a lattice-like set
+      // with many cocircular quadruples and occasional coincidences.
+      for (auto& v : d) v = {u(rng) / 16.0, u(rng) / 16.0};
+    }
+    return DisplacementBatch::Dense(std::move(d));
+  });
+}
+
+TEST(Kinetic, DuplicatesMergeAndSeparate) {
+  const size_t n = 600;
+  auto pts = testing::UniformPoints(n, 71);
+  auto t = Triangulation::Create(pts);
+  ASSERT_TRUE(t.ok());
+  // Step 1: every point of the second half lands exactly on its partner.
+  std::vector<uint32_t> ids;
+  std::vector<Vec2> target;
+  for (uint32_t i = n / 2; i < n; ++i) {
+    ids.push_back(i);
+    target.push_back(pts[i - n / 2]);
+  }
+  auto r = t->ApplyDisplacements(DisplacementBatch::AbsoluteSparse(ids, target));
+  ASSERT_TRUE(r.ok()) << r.status();
+  ASSERT_TRUE(t->Validate().ok()) << t->Validate();
+  EXPECT_EQ(t->num_sites(), n / 2);
+  EXPECT_EQ(EdgesAsPositions(*t), CgalDelaunayEdges(t->Positions()));
+  // Step 2: the pairs move together (still coincident).
+  std::mt19937_64 rng(72);
+  std::normal_distribution<double> g(0.0, 0.002);
+  std::vector<Vec2> d(n);
+  for (size_t i = 0; i < n / 2; ++i) d[i] = d[i + n / 2] = {g(rng), g(rng)};
+  r = t->ApplyDisplacements(DisplacementBatch::Dense(d));
+  ASSERT_TRUE(r.ok());
+  ASSERT_TRUE(t->Validate().ok()) << t->Validate();
+  EXPECT_EQ(t->num_sites(), n / 2);
+  EXPECT_EQ(EdgesAsPositions(*t), CgalDelaunayEdges(t->Positions()));
+  // Step 3: they separate again.
+  for (auto& v : d) v = {g(rng), g(rng)};
+  r = t->ApplyDisplacements(DisplacementBatch::Dense(d));
+  ASSERT_TRUE(r.ok());
+  ASSERT_TRUE(t->Validate().ok()) << t->Validate();
+  EXPECT_EQ(t->num_sites(), n);
+  EXPECT_EQ(EdgesAsPositions(*t), CgalDelaunayEdges(t->Positions()));
+}
+
+TEST(Kinetic, CollinearBecomesPlanarAndBack) {
+  auto line = testing::Collinear(200, 81);
+  const size_t n = line.size();
+  auto t = Triangulation::Create(line);
+  ASSERT_TRUE(t.ok());
+  EXPECT_FALSE(t->is_planar());
+  std::vector<Vec2> d(n, Vec2{0, 0});
+  d[7] = {0.5, 0.5};
+  ASSERT_TRUE(t->ApplyDisplacements(DisplacementBatch::Dense(d)).ok());
+  ASSERT_TRUE(t->Validate().ok());
+  EXPECT_TRUE(t->is_planar());
+  EXPECT_EQ(EdgesAsPositions(*t), CgalDelaunayEdges(t->Positions()));
+  for (auto& v : d) v = {0, 0};
+  d[7] = {-0.5, -0.5};
+  ASSERT_TRUE(t->ApplyDisplacements(DisplacementBatch::Dense(d)).ok());
+  ASSERT_TRUE(t->Validate().ok()) << t->Validate();
+  EXPECT_FALSE(t->is_planar());
+  EXPECT_EQ(EdgesAsPositions(*t), CgalDelaunayEdges(t->Positions()));
+}
+
+TEST(Kinetic, ExtremeScalesMove) {
+  for (double scale : {1e-12, 1e12}) {
+    const size_t n = 800;
+    auto t = Triangulation::Create(testing::UniformPoints(n, 91, scale));
+    ASSERT_TRUE(t.ok());
+    std::mt19937_64 rng(92);
+    RunSequence(*t, 6, [&](int) {
+      return Brownian(n, 0.3 * scale / std::sqrt(double(n)), rng);
+    });
+  }
+}
+
+TEST(Kinetic, ResultIndependentOfThreadCount) {
+  const size_t n = 4000;
+  const auto pts = testing::UniformPoints(n, 101);
+  TriangulationOptions one;
+  one.num_threads = 1;
+  auto a = Triangulation::Create(pts, one);
+  auto b = Triangulation::Create(pts);
+  ASSERT_TRUE(a.ok() && b.ok());
+  std::mt19937_64 rng_a(102), rng_b(102);
+  for (int s = 0; s < 8; ++s) {
+    auto ra = a->ApplyDisplacements(Brownian(n, 0.5 / std::sqrt(double(n)), rng_a));
+    auto rb = b->ApplyDisplacements(Brownian(n, 0.5 / std::sqrt(double(n)), rng_b));
+    ASSERT_TRUE(ra.ok() && rb.ok());
+    EXPECT_EQ(ra->path, rb->path);
+    EXPECT_EQ(ra->flips.delaunay, rb->flips.delaunay);
+    EXPECT_EQ(ra->flips.interior_fix, rb->flips.interior_fix);
+    EXPECT_EQ(ra->flips.legalize_rounds, rb->flips.legalize_rounds);
+    // Same mesh down to the numbering of half-edges.
+    const TriangulationView va = a->view(), vb = b->view();
+    ASSERT_EQ(va.mesh.num_half_edges, vb.mesh.num_half_edges);
+    for (uint32_t e = 0; e < va.mesh.num_half_edges; ++e) {
+      ASSERT_EQ(va.mesh.origin[e], vb.mesh.origin[e]) << "step " << s;
+      ASSERT_EQ(va.mesh.twin[e], vb.mesh.twin[e]) << "step " << s;
+    }
+  }
+}
+
+TEST(Kinetic, BadInputIsRejectedAndChangesNothing) {
+  const size_t n = 300;
+  auto t = Triangulation::Create(testing::UniformPoints(n, 111));
+  ASSERT_TRUE(t.ok());
+  const auto before_pos = t->Positions();
+  const auto before_edges = t->Edges();
+  auto expect_unchanged = [&] {
+    EXPECT_EQ(t->Positions(), before_pos);
+    EXPECT_EQ(t->Edges(), before_edges);
+    EXPECT_TRUE(t->Validate().ok());
+  };
+  std::vector<Vec2> d(n, Vec2{0.001, 0.0});
+  d[17].y = std::nan("");
+  auto r = t->ApplyDisplacements(DisplacementBatch::Dense(d));
+  EXPECT_EQ(r.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(r.status().message().find("deltas[17].y"), std::string::npos)
+      << r.status();
+  expect_unchanged();
+
+  d[17].y = HUGE_VAL;
+  r = t->ApplyDisplacements(DisplacementBatch::Dense(d));
+  EXPECT_EQ(r.status().code(), absl::StatusCode::kInvalidArgument);
+  expect_unchanged();
+
+  d.pop_back();
+  r = t->ApplyDisplacements(DisplacementBatch::Dense(d));
+  EXPECT_EQ(r.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(r.status().message().find("expected 300"), std::string::npos);
+  expect_unchanged();
+
+  r = t->ApplyDisplacements(DisplacementBatch::Sparse({1, 999}, {{0, 0}, {0, 0}}));
+  EXPECT_EQ(r.status().code(), absl::StatusCode::kNotFound);
+  EXPECT_NE(r.status().message().find("ids[1] = 999"), std::string::npos);
+  expect_unchanged();
+
+  r = t->ApplyDisplacements(DisplacementBatch::Sparse({4, 4}, {{0.1, 0}, {0, 0}}));
+  EXPECT_EQ(r.status().code(), absl::StatusCode::kInvalidArgument);
+  expect_unchanged();
+
+  r = t->ApplyDisplacements(DisplacementBatch::Sparse({4}, {{0.1, 0}, {0, 0}}));
+  EXPECT_EQ(r.status().code(), absl::StatusCode::kInvalidArgument);
+  expect_unchanged();
+
+  r = t->ApplyDisplacements(DisplacementBatch::AbsoluteSparse({3}, {{1e40, 0}}));
+  EXPECT_EQ(r.status().code(), absl::StatusCode::kInvalidArgument);
+  expect_unchanged();
+}
+
+}  // namespace
+}  // namespace kinetri::core

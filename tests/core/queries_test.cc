@@ -1,0 +1,220 @@
+// Every query kind against brute force on random and degenerate inputs.
+#include "core/queries.h"
+
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <numeric>
+#include <random>
+
+#include "core/predicates.h"
+#include "tests/core/test_util.h"
+
+namespace kinetri::core {
+namespace {
+
+// All point ids ranked from q as documented in queries.h, minus `self`.
+std::vector<uint32_t> BruteRank(const std::vector<Vec2>& pts, const Vec2& q,
+                                uint32_t self) {
+  std::vector<uint32_t> ids;
+  for (uint32_t i = 0; i < pts.size(); ++i) {
+    if (i != self) ids.push_back(i);
+  }
+  std::sort(ids.begin(), ids.end(), [&](uint32_t a, uint32_t b) {
+    const int c = CompareCloser(q, pts[a], pts[b]);
+    return c != 0 ? c < 0 : a < b;
+  });
+  return ids;
+}
+
+std::vector<uint32_t> Row(const NeighborLists& r, size_t i) {
+  return {r.ids.begin() + r.offsets[i], r.ids.begin() + r.offsets[i + 1]};
+}
+
+std::vector<Vec2> QueryPoints(const std::vector<Vec2>& pts, size_t m,
+                              uint64_t seed) {
+  std::mt19937_64 rng(seed);
+  Vec2 lo{1e300, 1e300}, hi{-1e300, -1e300};
+  for (const Vec2& p : pts) {
+    lo = {std::min(lo.x, p.x), std::min(lo.y, p.y)};
+    hi = {std::max(hi.x, p.x), std::max(hi.y, p.y)};
+  }
+  if (pts.empty()) lo = {0, 0}, hi = {1, 1};
+  std::uniform_real_distribution<double> u(-0.2, 1.2);
+  std::uniform_int_distribution<size_t> pick(0, pts.empty() ? 0 : pts.size() - 1);
+  std::vector<Vec2> q(m);
+  for (size_t i = 0; i < m; ++i) {
+    if (i % 3 == 0 && !pts.empty()) {
+      q[i] = pts[pick(rng)];  // exactly on a point
+    } else {
+      q[i] = {lo.x + u(rng) * (hi.x - lo.x + 1e-9),
+              lo.y + u(rng) * (hi.y - lo.y + 1e-9)};
+    }
+  }
+  return q;
+}
+
+void CheckAllQueries(const std::vector<Vec2>& pts, uint64_t seed) {
+  auto t = Triangulation::Create(pts);
+  ASSERT_TRUE(t.ok()) << t.status();
+  const uint32_t n = pts.size();
+  // All-points nearest neighbour.
+  auto all = AllNearestNeighbors(*t);
+  ASSERT_TRUE(all.ok());
+  ASSERT_EQ(all->num_queries(), n);
+  for (uint32_t i = 0; i < n; ++i) {
+    const auto rank = BruteRank(pts, pts[i], i);
+    const auto row = Row(*all, i);
+    if (rank.empty()) {
+      EXPECT_TRUE(row.empty());
+    } else {
+      ASSERT_EQ(row.size(), 1u);
+      EXPECT_EQ(row[0], rank[0]) << "all-NN of " << i;
+      EXPECT_DOUBLE_EQ(all->distances[all->offsets[i]],
+                       std::hypot(pts[i].x - pts[rank[0]].x,
+                                  pts[i].y - pts[rank[0]].y));
+    }
+  }
+  // k-NN of positions and of points.
+  const auto qs = QueryPoints(pts, 300, seed);
+  std::vector<uint32_t> ids(std::min<uint32_t>(n, 300));
+  std::iota(ids.begin(), ids.end(), 0);
+  for (int k : {1, 4, 17, int(n) + 3}) {
+    auto r = KNearest(*t, qs, k);
+    ASSERT_TRUE(r.ok());
+    for (size_t i = 0; i < qs.size(); ++i) {
+      auto rank = BruteRank(pts, qs[i], kNoVertex);
+      rank.resize(std::min<size_t>(rank.size(), k));
+      ASSERT_EQ(Row(*r, i), rank) << "kNN k=" << k << " query " << i;
+    }
+    for (bool exclude : {true, false}) {
+      auto rp = KNearestOfPoints(*t, ids, k, exclude);
+      ASSERT_TRUE(rp.ok());
+      for (size_t i = 0; i < ids.size(); ++i) {
+        auto rank = BruteRank(pts, pts[ids[i]], exclude ? ids[i] : kNoVertex);
+        rank.resize(std::min<size_t>(rank.size(), k));
+        ASSERT_EQ(Row(*rp, i), rank) << "kNN of point " << ids[i];
+      }
+    }
+  }
+  // Fixed radius, including radii that hit points exactly.
+  double typical = 0.0;
+  for (size_t i = 1; i < std::min<size_t>(n, 50); ++i) {
+    typical = std::max(typical, std::hypot(pts[i].x - pts[0].x, pts[i].y - pts[0].y));
+  }
+  for (double r : {0.0, typical * 0.05, typical * 0.2, typical}) {
+    for (uint32_t cap : {0u, 5u}) {
+      auto res = WithinRadius(*t, qs, r, cap);
+      ASSERT_TRUE(res.ok());
+      for (size_t i = 0; i < qs.size(); ++i) {
+        std::vector<uint32_t> want;
+        for (uint32_t id : BruteRank(pts, qs[i], kNoVertex)) {
+          if (CompareDistanceToRadius(qs[i], pts[id], r) <= 0) want.push_back(id);
+        }
+        const bool cut = cap && want.size() > cap;
+        if (cut) want.resize(cap);
+        ASSERT_EQ(Row(*res, i), want) << "FRNN r=" << r << " query " << i;
+        EXPECT_EQ(res->truncated[i] != 0, cut);
+      }
+      auto resp = WithinRadiusOfPoints(*t, ids, r, true, cap);
+      ASSERT_TRUE(resp.ok());
+      for (size_t i = 0; i < ids.size(); ++i) {
+        std::vector<uint32_t> want;
+        for (uint32_t id : BruteRank(pts, pts[ids[i]], ids[i])) {
+          if (CompareDistanceToRadius(pts[ids[i]], pts[id], r) <= 0) {
+            want.push_back(id);
+          }
+        }
+        if (cap && want.size() > cap) want.resize(cap);
+        ASSERT_EQ(Row(*resp, i), want) << "FRNN of point " << ids[i];
+      }
+    }
+  }
+}
+
+TEST(Queries, Uniform) { CheckAllQueries(testing::UniformPoints(2000, 1), 2); }
+TEST(Queries, Clustered) { CheckAllQueries(testing::ClusteredPoints(2000, 3), 4); }
+TEST(Queries, LatticeWithManyTies) { CheckAllQueries(testing::Lattice(30), 5); }
+TEST(Queries, Duplicates) { CheckAllQueries(testing::WithDuplicates(400, 3, 6), 7); }
+TEST(Queries, Collinear) { CheckAllQueries(testing::Collinear(300, 8), 9); }
+TEST(Queries, TinySets) {
+  CheckAllQueries({}, 10);
+  CheckAllQueries({{1, 1}}, 11);
+  CheckAllQueries({{1, 1}, {1, 1}}, 12);
+  CheckAllQueries({{1, 1}, {2, 3}}, 13);
+  CheckAllQueries({{0, 0}, {1, 0}, {0, 1}}, 14);
+}
+TEST(Queries, ExtremeScales) {
+  CheckAllQueries(testing::UniformPoints(500, 15, 1e-12), 16);
+  CheckAllQueries(testing::UniformPoints(500, 17, 1e12), 18);
+  CheckAllQueries(testing::UniformPoints(500, 19, 1.0, 1e12), 20);
+}
+
+TEST(Queries, AfterMotion) {
+  const size_t n = 1500;
+  auto t = Triangulation::Create(testing::UniformPoints(n, 21));
+  ASSERT_TRUE(t.ok());
+  std::mt19937_64 rng(22);
+  std::normal_distribution<double> g(0.0, 0.01);
+  for (int s = 0; s < 5; ++s) {
+    std::vector<Vec2> d(n);
+    for (auto& v : d) v = {g(rng), g(rng)};
+    ASSERT_TRUE(t->ApplyDisplacements(DisplacementBatch::Dense(d)).ok());
+  }
+  const auto pts = t->Positions();
+  auto all = AllNearestNeighbors(*t);
+  ASSERT_TRUE(all.ok());
+  for (uint32_t i = 0; i < n; ++i) {
+    ASSERT_EQ(Row(*all, i)[0], BruteRank(pts, pts[i], i)[0]);
+  }
+  const auto qs = QueryPoints(pts, 200, 23);
+  auto r = KNearest(*t, qs, 8);
+  ASSERT_TRUE(r.ok());
+  for (size_t i = 0; i < qs.size(); ++i) {
+    auto rank = BruteRank(pts, qs[i], kNoVertex);
+    rank.resize(8);
+    ASSERT_EQ(Row(*r, i), rank);
+  }
+}
+
+TEST(Queries, ThreadCountDoesNotChangeResults) {
+  const auto pts = testing::UniformPoints(3000, 24);
+  TriangulationOptions one;
+  one.num_threads = 1;
+  auto a = Triangulation::Create(pts, one);
+  auto b = Triangulation::Create(pts);
+  ASSERT_TRUE(a.ok() && b.ok());
+  const auto qs = QueryPoints(pts, 2000, 25);
+  auto ra = WithinRadius(*a, qs, 0.03, 0);
+  auto rb = WithinRadius(*b, qs, 0.03, 0);
+  ASSERT_TRUE(ra.ok() && rb.ok());
+  EXPECT_EQ(ra->offsets, rb->offsets);
+  EXPECT_EQ(ra->ids, rb->ids);
+}
+
+TEST(Queries, BadArguments) {
+  auto t = Triangulation::Create(testing::UniformPoints(100, 26));
+  ASSERT_TRUE(t.ok());
+  const std::vector<Vec2> q = {{0.5, 0.5}};
+  EXPECT_EQ(KNearest(*t, q, 0).status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(KNearest(*t, q, -3).status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(WithinRadius(*t, q, -1.0, 0).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(WithinRadius(*t, q, std::nan(""), 0).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  auto bad = KNearest(*t, {{0.5, 0.5}, {std::nan(""), 0}}, 1);
+  EXPECT_EQ(bad.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(bad.status().message().find("queries[1].x"), std::string::npos);
+  const std::vector<uint32_t> ids = {3, 100};
+  auto nf = KNearestOfPoints(*t, ids, 2, true);
+  EXPECT_EQ(nf.status().code(), absl::StatusCode::kNotFound);
+  EXPECT_NE(nf.status().message().find("ids[1] = 100"), std::string::npos);
+  QueryLimits limits;
+  limits.max_total_results = 10;
+  EXPECT_EQ(WithinRadius(*t, q, 10.0, 0, limits).status().code(),
+            absl::StatusCode::kResourceExhausted);
+}
+
+}  // namespace
+}  // namespace kinetri::core

@@ -1,0 +1,36 @@
+// Shared test helpers: point generators and the CGAL / brute-force oracles.
+#ifndef KINETRI_TESTS_CORE_TEST_UTIL_H_
+#define KINETRI_TESTS_CORE_TEST_UTIL_H_
+
+#include <cstdint>
+#include <random>
+#include <utility>
+#include <vector>
+
+#include "core/triangulation.h"
+#include "core/vec2.h"
+
+namespace kinetri::testing {
+
+using core::Vec2;
+using EdgeList = std::vector<std::pair<Vec2, Vec2>>;
+
+std::vector<Vec2> UniformPoints(size_t n, uint64_t seed, double scale = 1.0,
+                                double offset = 0.0);
+std::vector<Vec2> ClusteredPoints(size_t n, uint64_t seed);
+// side x side integer lattice scaled by `spacing` (massively cocircular).
+std::vector<Vec2> Lattice(int side, double spacing = 1.0);
+std::vector<Vec2> Collinear(size_t n, uint64_t seed);
+// Uniform points with every point repeated `copies` times.
+std::vector<Vec2> WithDuplicates(size_t n, int copies, uint64_t seed);
+
+// Delaunay edges of the distinct positions, by CGAL; each pair lex-ordered.
+EdgeList CgalDelaunayEdges(const std::vector<Vec2>& points);
+// The triangulation's edges as position pairs, in the same normal form.
+EdgeList EdgesAsPositions(const core::Triangulation& t);
+
+bool operator<(const Vec2& a, const Vec2& b);
+
+}  // namespace kinetri::testing
+
+#endif  // KINETRI_TESTS_CORE_TEST_UTIL_H_

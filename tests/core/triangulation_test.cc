@@ -1,0 +1,81 @@
+// Initial construction: Validate() and edge set == CGAL on every input kind.
+#include "core/triangulation.h"
+
+#include <gtest/gtest.h>
+
+#include <algorithm>
+
+#include "tests/core/test_util.h"
+
+namespace kinetri::core {
+namespace {
+
+using testing::CgalDelaunayEdges;
+using testing::EdgesAsPositions;
+
+void ExpectDelaunay(const std::vector<Vec2>& pts) {
+  auto t = Triangulation::Create(pts);
+  ASSERT_TRUE(t.ok()) << t.status();
+  ASSERT_TRUE(t->Validate().ok()) << t->Validate();
+  EXPECT_EQ(EdgesAsPositions(*t), CgalDelaunayEdges(pts));
+  EXPECT_EQ(t->size(), pts.size());
+  for (uint32_t i = 0; i < pts.size(); ++i) {
+    ASSERT_EQ(t->Position(i), pts[i]);
+  }
+}
+
+TEST(Create, TinySets) {
+  ExpectDelaunay({});
+  ExpectDelaunay({{1, 2}});
+  ExpectDelaunay({{1, 2}, {3, 4}});
+  ExpectDelaunay({{1, 2}, {1, 2}});
+  ExpectDelaunay({{0, 0}, {1, 0}, {0, 1}});
+  ExpectDelaunay({{0, 0}, {1, 0}, {2, 0}});
+  ExpectDelaunay({{0, 0}, {0, 0}, {0, 0}});
+  ExpectDelaunay({{0, 0}, {1, 0}, {0, 1}, {1, 1}});  // cocircular square
+}
+
+TEST(Create, RandomAndClustered) {
+  ExpectDelaunay(testing::UniformPoints(5000, 1));
+  ExpectDelaunay(testing::ClusteredPoints(5000, 2));
+}
+
+TEST(Create, LatticeMatchesCgalPerturbation) {
+  ExpectDelaunay(testing::Lattice(40));
+  ExpectDelaunay(testing::Lattice(17, 0.1));
+}
+
+TEST(Create, CollinearAndDuplicates) {
+  ExpectDelaunay(testing::Collinear(500, 3));
+  ExpectDelaunay(testing::WithDuplicates(1000, 3, 4));
+  auto pts = testing::Collinear(50, 5);
+  pts.push_back({0.5, 0.25});  // one point off the line makes it planar
+  ExpectDelaunay(pts);
+}
+
+TEST(Create, ExtremeScales) {
+  ExpectDelaunay(testing::UniformPoints(2000, 6, 1e-12));
+  ExpectDelaunay(testing::UniformPoints(2000, 7, 1e12));
+  ExpectDelaunay(testing::UniformPoints(2000, 8, 1.0, 1e12));
+  ExpectDelaunay(testing::UniformPoints(2000, 9, 1e-3, 1e6));
+  auto lat = testing::Lattice(20, 1e-12);
+  for (auto& p : lat) p = {p.x + 1.0, p.y - 3.0};
+  ExpectDelaunay(lat);
+}
+
+TEST(Create, RejectsBadCoordinates) {
+  const double nan = std::nan("");
+  auto t = Triangulation::Create({{0, 0}, {nan, 1}});
+  ASSERT_FALSE(t.ok());
+  EXPECT_EQ(t.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(t.status().message().find("points[1].x"), std::string::npos)
+      << t.status();
+  t = Triangulation::Create({{0, 0}, {1, HUGE_VAL}});
+  EXPECT_EQ(t.status().code(), absl::StatusCode::kInvalidArgument);
+  t = Triangulation::Create({{0, 0}, {1e-200, 1}});
+  EXPECT_EQ(t.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(t.status().message().find("exact range"), std::string::npos);
+}
+
+}  // namespace
+}  // namespace kinetri::core
