@@ -26,7 +26,8 @@ struct Query {
 };
 
 double Distance(const Vec2& a, const Vec2& b) {
-  return std::hypot(a.x - b.x, a.y - b.y);
+  const double dx = a.x - b.x, dy = a.y - b.y;
+  return std::sqrt(dx * dx + dy * dy);
 }
 
 // Appends the points of `site` (ascending external id) except `skip`.
@@ -244,7 +245,9 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
           stack.pop_back();
           found.push_back(u);
           v.ForEachNeighbor(u, [&](uint32_t w) {
-            if (CompareDistanceToRadius(q.q, v.pos[w], r) <= 0 &&
+            // parent(w) must come before w; this also keeps the root (the
+            // first site, whose "parent" comes after it) from being revisited.
+            if (w != root && CompareDistanceToRadius(q.q, v.pos[w], r) <= 0 &&
                 FirstNeighbor(v, q.q, w, /*include_self=*/false) == u) {
               stack.push_back(w);
             }

@@ -286,13 +286,11 @@ bool Triangulation::TryStep(const std::vector<Vec2>& to,
   // re-insertion if splitting the step does not help.
   {
     const MeshView m = mesh_.view();
-    stuck_vertices->clear();
     for (uint32_t t : stuck) {
       for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
         const uint32_t v = m.origin[e];
-        if (v != kInfiniteVertex && v != kNoVertex) {
-          stuck_vertices->push_back(v);
-        }
+        stuck_vertices->push_back(
+            (v != kInfiniteVertex && v != kNoVertex) ? v : kNoVertex);
       }
     }
   }
@@ -329,47 +327,76 @@ bool Triangulation::TryStep(const std::vector<Vec2>& to,
                  stuck_vertices);
 }
 
-bool Triangulation::InsertVertex(uint32_t v, uint32_t hint_vertex,
-                                 StepReport* report) {
-  const auto& ve = mesh_.vertex_edge();
-  uint32_t start = 0;
-  if (hint_vertex != kNoVertex && hint_vertex < ve.size() &&
-      ve[hint_vertex] != kNoEdge) {
-    start = TriangleOf(ve[hint_vertex]);
-  } else {
-    while (start < mesh_.num_triangles() && mesh_.view().IsFree(start)) ++start;
-  }
-  const VertexOps::Location loc =
-      VertexOps::Locate(mesh_, pos_, pos_[v], start);
-  if (loc.triangle == kNoEdge) return false;
-  if (loc.coincident != kNoVertex) {
-    // Join the existing site: v and the points hanging off it become
-    // members of loc.coincident's chain.
-    const uint32_t w = loc.coincident;
-    uint32_t tail = v;
-    for (uint32_t p = v; p != kNoVertex; p = dup_next_[p]) {
-      rep_[p] = w;
-      tail = p;
+bool Triangulation::InsertBatch(std::vector<uint32_t> pending,
+                                const std::vector<uint32_t>& hints,
+                                StepReport* report) {
+  std::sort(pending.begin(), pending.end());
+  std::vector<uint32_t> owner;  // per triangle: inserting vertex this round
+  while (!pending.empty()) {
+    // Locate every pending point (read-only, parallel).
+    uint32_t fallback = 0;
+    while (fallback < mesh_.num_triangles() && mesh_.view().IsFree(fallback)) {
+      ++fallback;
     }
-    dup_next_[tail] = dup_next_[w];
-    dup_next_[w] = v;
-    has_duplicates_ = true;
-    return true;
+    const auto& ve = mesh_.vertex_edge();
+    std::vector<VertexOps::Location> loc(pending.size());
+    ParallelFor(
+        0, pending.size(),
+        [&](size_t i) {
+          const uint32_t v = pending[i];
+          const uint32_t h = hints[v];
+          const uint32_t start =
+              (h < ve.size() && ve[h] != kNoEdge) ? TriangleOf(ve[h]) : fallback;
+          loc[i] = VertexOps::Locate(mesh_, pos_, pos_[v], start);
+        },
+        16);
+    // Coincident points join sites; one new vertex per triangle per round.
+    owner.assign(mesh_.num_triangles(), kNoVertex);
+    std::vector<uint32_t> split, deferred;
+    for (size_t i = 0; i < pending.size(); ++i) {
+      const uint32_t v = pending[i];
+      if (loc[i].triangle == kNoEdge) return false;
+      if (loc[i].coincident != kNoVertex) {
+        const uint32_t w = loc[i].coincident;
+        uint32_t tail = v;
+        for (uint32_t p = v; p != kNoVertex; p = dup_next_[p]) {
+          rep_[p] = w;
+          tail = p;
+        }
+        dup_next_[tail] = dup_next_[w];
+        dup_next_[w] = v;
+        has_duplicates_ = true;
+        continue;
+      }
+      uint32_t& o = owner[loc[i].triangle];
+      if (o == kNoVertex) {
+        o = v;
+        split.push_back(static_cast<uint32_t>(i));
+      } else {
+        deferred.push_back(v);
+      }
+    }
+    if (split.empty()) break;
+    std::vector<uint32_t> inserted, touched;
+    for (uint32_t i : split) {
+      const auto tris = VertexOps::Split(mesh_, loc[i].triangle, pending[i]);
+      inserted.push_back(pending[i]);
+      touched.insert(touched.end(), tris.begin(), tris.end());
+    }
+    std::vector<uint32_t> invalid =
+        KineticExecutor::FindInvalidTriangles(mesh_, pos_, &inserted);
+    if (!KineticExecutor::Fix(mesh_, pos_, std::move(invalid), scratch_,
+                              &report->flips, &touched, nullptr, nullptr)) {
+      return false;
+    }
+    std::vector<uint32_t> seeds =
+        KineticExecutor::TrianglesAround(mesh_, inserted);
+    seeds.insert(seeds.end(), touched.begin(), touched.end());
+    std::sort(seeds.begin(), seeds.end());
+    seeds.erase(std::unique(seeds.begin(), seeds.end()), seeds.end());
+    KineticExecutor::Legalize(mesh_, pos_, &seeds, scratch_, &report->flips);
+    pending = std::move(deferred);
   }
-  const auto tris = VertexOps::Split(mesh_, loc.triangle, v);
-  const std::vector<uint32_t> just_v = {v};
-  std::vector<uint32_t> invalid =
-      KineticExecutor::FindInvalidTriangles(mesh_, pos_, &just_v);
-  std::vector<uint32_t> touched(tris.begin(), tris.end());
-  if (!KineticExecutor::Fix(mesh_, pos_, std::move(invalid), scratch_,
-                            &report->flips, &touched, nullptr, nullptr)) {
-    return false;
-  }
-  std::vector<uint32_t> seeds = KineticExecutor::TrianglesAround(mesh_, just_v);
-  seeds.insert(seeds.end(), touched.begin(), touched.end());
-  std::sort(seeds.begin(), seeds.end());
-  seeds.erase(std::unique(seeds.begin(), seeds.end()), seeds.end());
-  KineticExecutor::Legalize(mesh_, pos_, &seeds, scratch_, &report->flips);
   return true;
 }
 
@@ -406,17 +433,28 @@ bool Triangulation::LocalUpdate(const std::vector<Vec2>& next,
       // Detached points that land together re-form a site on insertion.
     }
   }
-  // 2. Kinetic step; vertices fixing cannot repair are removed and retried.
+  // 2. Kinetic step. Vertices of triangles that fixing cannot repair have
+  //    their own motion halved (a local sub-step) and finish it in later
+  //    sub-steps; after kMaxHalvings they are removed and re-inserted.
+  constexpr int kMaxHalvings = 4;
   const uint32_t max_removed =
       std::max<uint32_t>(64, static_cast<uint32_t>(sites_.size() / 8));
   std::vector<uint32_t> removed;
   std::vector<uint32_t> hints(n, kNoVertex);
+  std::vector<uint8_t> level(n, 0);
   const auto& ve = mesh_.vertex_edge();
+  std::vector<Vec2> goal = next;
+  std::vector<uint32_t> active = moved_points;  // candidates still to move
   bool ok = false;
-  for (int attempt = 0; attempt < 8; ++attempt) {
+  auto set_goal = [&](uint32_t v, const Vec2& g) {
+    for (uint32_t p = v; p != kNoVertex; p = dup_next_[p]) goal[p] = g;
+  };
+  for (int attempt = 0; attempt < 64; ++attempt) {
     std::vector<uint32_t> moved;
-    for (uint32_t i : moved_points) {
-      if (rep_[i] == i && ve[i] != kNoEdge) moved.push_back(i);
+    for (uint32_t i : active) {
+      if (rep_[i] == i && ve[i] != kNoEdge && goal[i] != pos_[i]) {
+        moved.push_back(i);
+      }
     }
     const bool sparse = moved.size() * 4 < n;
     std::vector<uint32_t> seeds;
@@ -426,34 +464,97 @@ bool Triangulation::LocalUpdate(const std::vector<Vec2>& next,
                    removal_touched_.end());
     }
     std::vector<uint32_t> stuck;
-    if (TryStep(next, sparse ? &moved : nullptr, sparse ? &seeds : nullptr, 0,
+    if (TryStep(goal, sparse ? &moved : nullptr, sparse ? &seeds : nullptr, 0,
                 report, &stuck)) {
-      ok = true;
-      break;
+      removal_touched_.clear();
+      // Held-back vertices now finish their motion.
+      std::vector<uint32_t> held;
+      for (uint32_t v : moved) {
+        if (goal[v] != next[v]) held.push_back(v);
+      }
+      if (held.empty()) {
+        ok = true;
+        break;
+      }
+      for (uint32_t v : held) set_goal(v, next[v]);
+      active = std::move(held);
+      continue;
     }
-    std::sort(stuck.begin(), stuck.end());
-    stuck.erase(std::unique(stuck.begin(), stuck.end()), stuck.end());
-    if (stuck.empty() || removed.size() + stuck.size() > max_removed ||
-        sites_.size() - removed.size() - stuck.size() < 8) {
-      *reason = absl::StrCat("fixing stuck; ", stuck.size(),
+    // Per stuck triangle: halve the motion of its still-moving vertices; if
+    // none can be halved any more, remove its moving vertices (or all).
+    bool progress = false;
+    std::vector<uint32_t> to_remove;
+    std::vector<uint8_t> halved(n, 0);
+    auto moving = [&](uint32_t v) { return goal[v] != pos_[v]; };
+    for (size_t k = 0; k + 2 < stuck.size(); k += 3) {
+      bool any_halved = false;
+      for (size_t j = k; j < k + 3; ++j) {
+        const uint32_t v = stuck[j];
+        if (v == kNoVertex || ve[v] == kNoEdge || !moving(v)) continue;
+        if (halved[v]) {
+          any_halved = true;
+          continue;
+        }
+        if (level[v] >= kMaxHalvings) continue;
+        const Vec2& a = pos_[v];
+        const Vec2& b = goal[v];
+        const Vec2 h{a.x + 0.5 * (b.x - a.x), a.y + 0.5 * (b.y - a.y)};
+        if (!InExactDomain(h.x) || !InExactDomain(h.y) || h == a || h == b) {
+          continue;
+        }
+        set_goal(v, h);
+        ++level[v];
+        halved[v] = 1;
+        any_halved = progress = true;
+      }
+      if (any_halved) continue;
+      bool any_moving = false;
+      for (size_t j = k; j < k + 3; ++j) {
+        const uint32_t v = stuck[j];
+        if (v != kNoVertex && ve[v] != kNoEdge && moving(v)) {
+          to_remove.push_back(v);
+          any_moving = true;
+        }
+      }
+      if (!any_moving) {
+        for (size_t j = k; j < k + 3; ++j) {
+          if (stuck[j] != kNoVertex) to_remove.push_back(stuck[j]);
+        }
+      }
+    }
+    std::sort(to_remove.begin(), to_remove.end());
+    to_remove.erase(std::unique(to_remove.begin(), to_remove.end()),
+                    to_remove.end());
+    ++report->local_halvings;
+    if (removed.size() + to_remove.size() > max_removed ||
+        sites_.size() - removed.size() - to_remove.size() < 8) {
+      *reason = absl::StrCat("fixing stuck; ", removed.size() + to_remove.size(),
                              " vertices to re-insert exceed the local budget");
       return false;
     }
-    for (uint32_t v : stuck) {
+    for (uint32_t v : to_remove) {
       if (ve[v] == kNoEdge) continue;
       hints[v] = mesh_.view().Dest(ve[v]);
-      uint64_t flips = 0;
-      if (!VertexOps::Remove(mesh_, pos_, v, &removal_touched_, &flips)) {
+      if (!VertexOps::Remove(mesh_, pos_, v, &removal_touched_, nullptr)) {
         *reason = "could not remove a vertex for re-insertion";
         return false;
       }
-      report->flips.interior_fix += flips;
       removed.push_back(v);
+      progress = true;
+    }
+    if (!progress) {
+      *reason = "fixing stuck and no vertex left to hold back or remove";
+      return false;
+    }
+    // The next attempt moves every vertex whose goal is not reached yet.
+    active.clear();
+    for (uint32_t i = 0; i < n; ++i) {
+      if (goal[i] != pos_[i]) active.push_back(i);
     }
   }
   removal_touched_.clear();
   if (!ok) {
-    *reason = "fixing stuck after repeated re-insertion rounds";
+    *reason = "fixing stuck after 64 local sub-steps";
     return false;
   }
   // 3. Insert removed vertices and detached points at their new positions.
@@ -461,14 +562,11 @@ bool Triangulation::LocalUpdate(const std::vector<Vec2>& next,
   reinsert.insert(reinsert.end(), removed.begin(), removed.end());
   std::sort(reinsert.begin(), reinsert.end());
   for (uint32_t v : reinsert) {
-    uint32_t hint = hints[v];
-    if (hint == kInfiniteVertex || hint == kNoVertex || rep_[hint] != hint) {
-      hint = kNoVertex;
-    }
-    if (!InsertVertex(v, hint, report)) {
-      *reason = "re-insertion failed";
-      return false;
-    }
+    if (hints[v] < n && rep_[hints[v]] != hints[v]) hints[v] = kNoVertex;
+  }
+  if (!InsertBatch(reinsert, hints, report)) {
+    *reason = "re-insertion failed";
+    return false;
   }
   report->reinserted = static_cast<uint32_t>(reinsert.size());
   if (mesh_.has_free_triangles()) mesh_.Compact();

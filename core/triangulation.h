@@ -44,7 +44,11 @@ namespace kinetri::core {
 
 struct TriangulationOptions {
   int num_threads = 0;            // 0: all cores
-  int max_subdivision_depth = 1;  // a step is split into at most 2^depth
+  // Whole-step splitting: a step whose fixing gets stuck is split into at
+  // most 2^depth sub-steps for all points. 0 (default) leaves splitting to
+  // the cheaper local sub-steps: only the stuck vertices' motion is halved
+  // (up to 4 times) before they are re-inserted.
+  int max_subdivision_depth = 0;
   double renumber_stretch = 2.0;  // renumber when edge span grows this much
   int renumber_check_interval = 8;  // steps between locality checks
 };
@@ -74,6 +78,7 @@ struct StepReport {
   uint32_t substeps = 0;  // local sub-steps taken (1 = not split)
   uint32_t failed_attempts = 0;  // fixing attempts that got stuck
   uint32_t reinserted = 0;  // vertices removed and inserted again locally
+  uint32_t local_halvings = 0;  // rounds that halved stuck vertices' motion
   FlipCounts flips;
   std::string fallback_reason;  // why the step was rebuilt, if it was
   bool renumbered = false;
@@ -135,7 +140,10 @@ class Triangulation {
   bool LocalUpdate(const std::vector<Vec2>& next,
                    const std::vector<uint32_t>& moved_points,
                    StepReport* report, std::string* reason);
-  bool InsertVertex(uint32_t v, uint32_t hint_vertex, StepReport* report);
+  // Inserts the points (at pos_) into the mesh in rounds: locate all in
+  // parallel, split one point per triangle, fix and legalize together.
+  bool InsertBatch(std::vector<uint32_t> pending,
+                   const std::vector<uint32_t>& hints, StepReport* report);
   double MeanEdgeSpan() const;
   void Renumber();
 

@@ -18,6 +18,7 @@ struct PathTally {
   int local = 0, subdivided = 0, rebuilt = 0, noop = 0;
   void Add(const StepReport& r) {
     switch (r.path) {
+      case UpdatePath::kReinserted:
       case UpdatePath::kLocal:
         ++local;
         break;

@@ -1,0 +1,177 @@
+// Quick benchmark: kinetic update vs CGAL rebuild, all-points NN vs nanoflann.
+//
+// Usage: kinetri_quick_bench --n=1000000 --steps=5 --sigma=0.1
+// Prints one line per step and a summary with the ratios the core issue
+// targets (update / CGAL rebuild, all-NN / nanoflann build+query), plus a
+// JSON summary line starting with "JSON ".
+#include <CGAL/Delaunay_triangulation_2.h>
+#include <CGAL/Exact_predicates_inexact_constructions_kernel.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <nanoflann.hpp>
+#include <random>
+#include <thread>
+#include <vector>
+
+#include "absl/flags/flag.h"
+#include "absl/flags/parse.h"
+#include "absl/flags/usage.h"
+#include "core/queries.h"
+#include "core/triangulation.h"
+
+ABSL_FLAG(uint32_t, n, 1000000, "number of points (uniform in the unit square)");
+ABSL_FLAG(int, steps, 5, "number of Brownian steps to time");
+ABSL_FLAG(double, sigma, 0.1,
+          "Brownian step standard deviation, in units of the mean spacing "
+          "1/sqrt(n)");
+ABSL_FLAG(int, threads, 0, "worker threads for Kinetri (0 = all cores)");
+ABSL_FLAG(uint64_t, seed, 1, "random seed");
+ABSL_FLAG(int, max_subdivision_depth, -1,
+          "override TriangulationOptions::max_subdivision_depth (-1: default)");
+
+namespace {
+
+using kinetri::core::Vec2;
+using Clock = std::chrono::steady_clock;
+
+double Seconds(Clock::time_point a) {
+  return std::chrono::duration<double>(Clock::now() - a).count();
+}
+
+double CgalBuild(const std::vector<Vec2>& pts) {
+  using K = CGAL::Exact_predicates_inexact_constructions_kernel;
+  std::vector<K::Point_2> p;
+  p.reserve(pts.size());
+  for (const Vec2& v : pts) p.emplace_back(v.x, v.y);
+  const auto t0 = Clock::now();
+  CGAL::Delaunay_triangulation_2<K> dt(p.begin(), p.end());
+  const double s = Seconds(t0);
+  if (dt.number_of_vertices() == 0) std::puts("empty");
+  return s;
+}
+
+struct Cloud {
+  const std::vector<Vec2>* pts;
+  size_t kdtree_get_point_count() const { return pts->size(); }
+  double kdtree_get_pt(size_t i, size_t d) const {
+    return d == 0 ? (*pts)[i].x : (*pts)[i].y;
+  }
+  template <class BBox>
+  bool kdtree_get_bbox(BBox&) const {
+    return false;
+  }
+};
+
+// nanoflann build + 2-NN of every point (the first hit is the point itself),
+// parallel over points with std::thread, as a fair peer.
+double NanoflannAllNN(const std::vector<Vec2>& pts, int threads,
+                      double* build_s) {
+  using Tree = nanoflann::KDTreeSingleIndexAdaptor<
+      nanoflann::L2_Simple_Adaptor<double, Cloud>, Cloud, 2, uint32_t>;
+  Cloud cloud{&pts};
+  const auto t0 = Clock::now();
+  Tree tree(2, cloud, nanoflann::KDTreeSingleIndexAdaptorParams(10));
+  *build_s = Seconds(t0);
+  std::vector<uint32_t> nn(pts.size());
+  const int nt = threads > 0 ? threads
+                             : std::max(1u, std::thread::hardware_concurrency());
+  std::vector<std::thread> pool;
+  const size_t chunk = (pts.size() + nt - 1) / nt;
+  for (int t = 0; t < nt; ++t) {
+    pool.emplace_back([&, t] {
+      const size_t lo = t * chunk, hi = std::min(pts.size(), lo + chunk);
+      for (size_t i = lo; i < hi; ++i) {
+        uint32_t idx[2];
+        double d2[2];
+        const double q[2] = {pts[i].x, pts[i].y};
+        tree.knnSearch(q, 2, idx, d2);
+        nn[i] = idx[0] == i ? idx[1] : idx[0];
+      }
+    });
+  }
+  for (auto& th : pool) th.join();
+  return Seconds(t0);
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  absl::SetProgramUsageMessage(
+      "Times Kinetri's kinetic update against a CGAL rebuild and its all-points "
+      "nearest-neighbour query against nanoflann (build + 2-NN), in one run.");
+  absl::ParseCommandLine(argc, argv);
+  const uint32_t n = absl::GetFlag(FLAGS_n);
+  const int steps = absl::GetFlag(FLAGS_steps);
+  const double sigma = absl::GetFlag(FLAGS_sigma) / std::sqrt(double(n));
+  const int threads = absl::GetFlag(FLAGS_threads);
+  std::mt19937_64 rng(absl::GetFlag(FLAGS_seed));
+  std::uniform_real_distribution<double> u(0.0, 1.0);
+  std::normal_distribution<double> g(0.0, sigma);
+  std::vector<Vec2> pts(n);
+  for (auto& p : pts) p = {u(rng), u(rng)};
+
+  kinetri::core::TriangulationOptions opt;
+  opt.num_threads = threads;
+  if (absl::GetFlag(FLAGS_max_subdivision_depth) >= 0) {
+    opt.max_subdivision_depth = absl::GetFlag(FLAGS_max_subdivision_depth);
+  }
+  auto t0 = Clock::now();
+  auto tri = kinetri::core::Triangulation::Create(pts, opt);
+  if (!tri.ok()) {
+    std::fprintf(stderr, "%s\n", tri.status().ToString().c_str());
+    return 1;
+  }
+  std::printf("n=%u threads=%d sigma=%.3g spacing; initial build (CGAL + "
+              "convert + Hilbert) %.3f s\n",
+              n, tri->num_threads(), absl::GetFlag(FLAGS_sigma), Seconds(t0));
+  double update_total = 0.0, cgal_total = 0.0;
+  for (int s = 0; s < steps; ++s) {
+    std::vector<Vec2> d(n);
+    for (auto& v : d) v = {g(rng), g(rng)};
+    t0 = Clock::now();
+    auto rep = tri->ApplyDisplacements(
+        kinetri::core::DisplacementBatch::Dense(std::move(d)));
+    const double up = Seconds(t0);
+    if (!rep.ok()) {
+      std::fprintf(stderr, "%s\n", rep.status().ToString().c_str());
+      return 1;
+    }
+    const double cg = CgalBuild(tri->Positions());
+    update_total += up;
+    cgal_total += cg;
+    std::printf(
+        "step %d: update %.4f s (%s, substeps %u, re-inserted %u, fix flips "
+        "%llu, hull %llu/%llu, Delaunay flips %llu in %u rounds) | CGAL "
+        "rebuild %.4f s | ratio %.3f\n",
+        s, up, kinetri::core::UpdatePathName(rep->path), rep->substeps,
+        rep->reinserted, (unsigned long long)rep->flips.interior_fix,
+        (unsigned long long)rep->flips.hull_absorb,
+        (unsigned long long)rep->flips.hull_release,
+        (unsigned long long)rep->flips.delaunay, rep->flips.legalize_rounds,
+        cg, up / cg);
+    std::fflush(stdout);
+  }
+  t0 = Clock::now();
+  auto nn = kinetri::core::AllNearestNeighbors(*tri);
+  const double nn_s = Seconds(t0);
+  double nf_build = 0.0;
+  const double nf_s = NanoflannAllNN(tri->Positions(), threads, &nf_build);
+  const double up_ratio = update_total / cgal_total;
+  const double nn_ratio = nn_s / nf_s;
+  std::printf("update: mean %.4f s vs CGAL rebuild %.4f s -> ratio %.4f "
+              "(goal < 0.05)\n",
+              update_total / steps, cgal_total / steps, up_ratio);
+  std::printf("all-points NN: %.4f s vs nanoflann build %.4f s + query "
+              "%.4f s = %.4f s -> ratio %.4f (goal < 0.033)\n",
+              nn_s, nf_build, nf_s - nf_build, nf_s, nn_ratio);
+  std::printf(
+      "JSON {\"n\":%u,\"threads\":%d,\"sigma\":%g,\"update_s\":%.6f,"
+      "\"cgal_rebuild_s\":%.6f,\"update_ratio\":%.5f,\"allnn_s\":%.6f,"
+      "\"nanoflann_s\":%.6f,\"allnn_ratio\":%.5f}\n",
+      n, tri->num_threads(), absl::GetFlag(FLAGS_sigma), update_total / steps,
+      cgal_total / steps, up_ratio, nn_s, nf_s, nn_ratio);
+  return nn.ok() ? 0 : 1;
+}
