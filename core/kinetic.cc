@@ -279,7 +279,17 @@ bool KineticExecutor::Fix(Mesh& mesh, const std::vector<Vec2>& pos,
     SortUnique(next);
     work = std::move(next);
   }
-  return HullWindsOnce(mesh, pos);
+  if (HullWindsOnce(mesh, pos)) return true;
+  // Every triangle is valid but the hull winds more than once: report the
+  // ghost triangles, whose vertices are the ones to hold back.
+  if (stuck) {
+    const std::vector<uint32_t> ghosts =
+        Filter(mesh.num_triangles(), [&](size_t t) {
+          return m.IsGhost(static_cast<uint32_t>(t));
+        });
+    stuck->insert(stuck->end(), ghosts.begin(), ghosts.end());
+  }
+  return false;
 }
 
 void KineticExecutor::Undo(Mesh& mesh, const std::vector<uint32_t>& log) {

@@ -43,6 +43,33 @@ void Mesh::RenumberVertices(const std::vector<uint32_t>& new_of_old) {
   RebuildVertexEdges();
 }
 
+void Mesh::SortTrianglesByVertex() {
+  const uint32_t nt = num_triangles();
+  std::vector<uint32_t> key(nt);
+  ParallelFor(0, nt, [&](size_t t) {
+    uint32_t k = kInfiniteVertex;
+    for (size_t e = 3 * t; e < 3 * t + 3; ++e) k = std::min(k, origin_[e]);
+    key[t] = k == kInfiniteVertex ? num_vertices_ : k;
+  });
+  std::vector<uint32_t> start(size_t{num_vertices_} + 2, 0);
+  for (uint32_t t = 0; t < nt; ++t) ++start[key[t] + 1];
+  for (size_t i = 1; i < start.size(); ++i) start[i] += start[i - 1];
+  std::vector<uint32_t> new_of_old(nt);
+  for (uint32_t t = 0; t < nt; ++t) new_of_old[t] = start[key[t]]++;
+  std::vector<uint32_t> origin(origin_.size()), twin(twin_.size());
+  ParallelFor(0, nt, [&](size_t t) {
+    const uint32_t nt3 = 3 * new_of_old[t];
+    for (uint32_t k = 0; k < 3; ++k) {
+      const uint32_t f = twin_[3 * t + k];
+      origin[nt3 + k] = origin_[3 * t + k];
+      twin[nt3 + k] = 3 * new_of_old[f / 3] + f % 3;
+    }
+  });
+  origin_ = std::move(origin);
+  twin_ = std::move(twin);
+  RebuildVertexEdges();
+}
+
 void Mesh::UpdateVertexEdgesAfterFlip(uint32_t e) {
   const uint32_t f = twin_[e];
   for (uint32_t h : {e, Next(e), Prev(e), f, Next(f), Prev(f)}) {

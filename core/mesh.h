@@ -154,6 +154,11 @@ class Mesh {
   // Renames vertices: new id = new_of_old[old]. kInfiniteVertex is kept.
   void RenumberVertices(const std::vector<uint32_t>& new_of_old);
 
+  // Renumbers triangles in the order of their smallest vertex id (a stable
+  // counting sort), so that with spatially ordered vertices the triangles of
+  // a neighbourhood sit together in memory. Free slots must not exist.
+  void SortTrianglesByVertex();
+
   bool empty() const { return origin_.empty(); }
 
  private:

@@ -275,8 +275,10 @@ absl::StatusOr<NeighborLists> AllNearestNeighbors(const Triangulation& t) {
   std::vector<uint32_t> nn(n, kNoVertex);
   std::vector<double> dist(n, 0.0);
   t.Run([&] {
-    ParallelFor(0, n, [&](size_t ext) {
-      const uint32_t in = v.int_of_ext[ext];
+    // Internal (Hilbert) order keeps memory access local; results are
+    // scattered to external ids.
+    ParallelFor(0, n, [&](size_t in) {
+      const uint32_t ext = v.ext_of_int[in];
       const uint32_t site = v.rep[in];
       // Coincident points are each other's nearest (smallest other id).
       uint32_t best = kNoVertex;

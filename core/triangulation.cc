@@ -22,6 +22,11 @@
 namespace kinetri::core {
 namespace {
 
+double SecondsSince(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0)
+      .count();
+}
+
 absl::Status CheckCoordinate(double v, absl::string_view field, size_t index,
                              const char* axis) {
   if (std::isnan(v)) {
@@ -178,6 +183,7 @@ void Triangulation::Rebuild(const std::vector<Vec2>& positions_by_ext) {
     if (rep_[i] == i) sites_.push_back(i);
   }
   mesh_ = BuildDelaunayWithCgal(pos_, sites_);
+  if (!mesh_.empty()) mesh_.SortTrianglesByVertex();
   removal_touched_.clear();
   line_.clear();
   line_rank_.clear();
@@ -246,6 +252,7 @@ void Triangulation::Renumber() {
   }
   if (!mesh_.empty()) {
     mesh_.RenumberVertices(new_of_old);
+    mesh_.SortTrianglesByVertex();
   } else {
     for (uint32_t& v : line_) v = new_of_old[v];
     line_rank_.assign(n, kNoVertex);
@@ -259,6 +266,7 @@ bool Triangulation::TryStep(const std::vector<Vec2>& to,
                             const std::vector<uint32_t>* seeds, int depth,
                             StepReport* report,
                             std::vector<uint32_t>* stuck_vertices) {
+  auto t0 = std::chrono::steady_clock::now();
   std::vector<uint32_t> invalid =
       KineticExecutor::FindInvalidTriangles(mesh_, to, moved);
   std::vector<uint32_t> touched, log, stuck;
@@ -266,6 +274,8 @@ bool Triangulation::TryStep(const std::vector<Vec2>& to,
   const bool fixed = KineticExecutor::Fix(mesh_, to, std::move(invalid),
                                           scratch_, &counts, &touched, &log,
                                           &stuck);
+  report->fix_seconds += SecondsSince(t0);
+  t0 = std::chrono::steady_clock::now();
   if (fixed) {
     report->flips += counts;
     if (seeds == nullptr) {
@@ -279,6 +289,7 @@ bool Triangulation::TryStep(const std::vector<Vec2>& to,
     }
     pos_ = to;
     ++report->substeps;
+    report->legalize_seconds += SecondsSince(t0);
     return true;
   }
   ++report->failed_attempts;
@@ -295,6 +306,7 @@ bool Triangulation::TryStep(const std::vector<Vec2>& to,
     }
   }
   KineticExecutor::Undo(mesh_, log);
+  report->fix_seconds += SecondsSince(t0);
   if (depth >= options_.max_subdivision_depth) return false;
   // Split: move halfway, then the rest.
   std::vector<Vec2> mid = pos_;
@@ -469,8 +481,10 @@ bool Triangulation::LocalUpdate(const std::vector<Vec2>& next,
       removal_touched_.clear();
       // Held-back vertices now finish their motion.
       std::vector<uint32_t> held;
-      for (uint32_t v : moved) {
-        if (goal[v] != next[v]) held.push_back(v);
+      for (uint32_t v : active) {
+        if (rep_[v] == v && ve[v] != kNoEdge && goal[v] != next[v]) {
+          held.push_back(v);
+        }
       }
       if (held.empty()) {
         ok = true;
@@ -479,6 +493,36 @@ bool Triangulation::LocalUpdate(const std::vector<Vec2>& next,
       for (uint32_t v : held) set_goal(v, next[v]);
       active = std::move(held);
       continue;
+    }
+    if (!sparse) {
+      // A dense pass got stuck: hold the stuck vertices and their neighbours
+      // at their old positions so that the next dense pass succeeds; they
+      // then finish their motion in cheap sparse passes.
+      const MeshView mv = mesh_.view();
+      bool held_any = false;
+      for (uint32_t v : stuck) {
+        if (v == kNoVertex || ve[v] == kNoEdge) continue;
+        uint32_t e = ve[v];
+        const uint32_t e0 = e;
+        std::vector<uint32_t> region = {v};
+        do {
+          region.push_back(mv.Dest(e));
+          e = mv.twin[Prev(e)];
+        } while (e != e0);
+        for (uint32_t w : region) {
+          if (w == kInfiniteVertex || goal[w] == pos_[w]) continue;
+          set_goal(w, pos_[w]);
+          held_any = true;
+        }
+      }
+      if (held_any) {
+        ++report->local_halvings;
+        active.clear();
+        for (uint32_t i = 0; i < n; ++i) {
+          if (next[i] != pos_[i]) active.push_back(i);
+        }
+        continue;
+      }
     }
     // Per stuck triangle: halve the motion of its still-moving vertices; if
     // none can be halved any more, remove its moving vertices (or all).
@@ -532,6 +576,7 @@ bool Triangulation::LocalUpdate(const std::vector<Vec2>& next,
                              " vertices to re-insert exceed the local budget");
       return false;
     }
+    const auto t_remove = std::chrono::steady_clock::now();
     for (uint32_t v : to_remove) {
       if (ve[v] == kNoEdge) continue;
       hints[v] = mesh_.view().Dest(ve[v]);
@@ -542,6 +587,7 @@ bool Triangulation::LocalUpdate(const std::vector<Vec2>& next,
       removed.push_back(v);
       progress = true;
     }
+    report->reinsert_seconds += SecondsSince(t_remove);
     if (!progress) {
       *reason = "fixing stuck and no vertex left to hold back or remove";
       return false;
@@ -549,7 +595,7 @@ bool Triangulation::LocalUpdate(const std::vector<Vec2>& next,
     // The next attempt moves every vertex whose goal is not reached yet.
     active.clear();
     for (uint32_t i = 0; i < n; ++i) {
-      if (goal[i] != pos_[i]) active.push_back(i);
+      if (next[i] != pos_[i]) active.push_back(i);
     }
   }
   removal_touched_.clear();
@@ -564,10 +610,12 @@ bool Triangulation::LocalUpdate(const std::vector<Vec2>& next,
   for (uint32_t v : reinsert) {
     if (hints[v] < n && rep_[hints[v]] != hints[v]) hints[v] = kNoVertex;
   }
+  const auto t_insert = std::chrono::steady_clock::now();
   if (!InsertBatch(reinsert, hints, report)) {
     *reason = "re-insertion failed";
     return false;
   }
+  report->reinsert_seconds += SecondsSince(t_insert);
   report->reinserted = static_cast<uint32_t>(reinsert.size());
   if (mesh_.has_free_triangles()) mesh_.Compact();
   sites_.clear();

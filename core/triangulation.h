@@ -84,6 +84,11 @@ struct StepReport {
   bool renumbered = false;
   uint32_t num_sites = 0;   // distinct positions after the step
   double seconds = 0.0;
+  // Where the time went (wall clock): fixing attempts, legalizing, removing
+  // and inserting vertices again.
+  double fix_seconds = 0.0;
+  double legalize_seconds = 0.0;
+  double reinsert_seconds = 0.0;
 };
 
 class Triangulation {
