@@ -145,15 +145,16 @@ int main(int argc, char** argv) {
     std::printf(
         "step %d: update %.4f s (%s, substeps %u, re-inserted %u, fix flips "
         "%llu, hull %llu/%llu, Delaunay flips %llu in %u rounds; fix %.3f s, "
-        "legalize %.3f s, re-insert %.3f s) | CGAL rebuild %.4f s | ratio "
-        "%.3f\n",
+        "legalize %.3f s, re-insert %.3f s%s%s) | CGAL rebuild %.4f s | "
+        "ratio %.3f\n",
         s, up, kinetri::core::UpdatePathName(rep->path), rep->substeps,
         rep->reinserted, (unsigned long long)rep->flips.interior_fix,
         (unsigned long long)rep->flips.hull_absorb,
         (unsigned long long)rep->flips.hull_release,
         (unsigned long long)rep->flips.delaunay, rep->flips.legalize_rounds,
-        rep->fix_seconds, rep->legalize_seconds, rep->reinsert_seconds, cg,
-        up / cg);
+        rep->fix_seconds, rep->legalize_seconds, rep->reinsert_seconds,
+        rep->fallback_reason.empty() ? "" : "; rebuilt because: ",
+        rep->fallback_reason.c_str(), cg, up / cg);
     std::fflush(stdout);
   }
   t0 = Clock::now();

@@ -106,6 +106,11 @@ absl::StatusOr<Triangulation> Triangulation::Create(
   if (options.num_threads < 0) {
     return absl::InvalidArgumentError("num_threads must be >= 0");
   }
+  if (options.max_halvings < 0 || options.max_halvings > 30 ||
+      options.max_passes < 1) {
+    return absl::InvalidArgumentError(
+        "max_halvings must be in [0, 30] and max_passes >= 1");
+  }
   if (options.max_subdivision_depth < 0 || options.max_subdivision_depth > 16) {
     return absl::InvalidArgumentError(
         "max_subdivision_depth must be in [0, 16]");
@@ -271,6 +276,13 @@ bool Triangulation::TryStep(const std::vector<Vec2>& to,
       KineticExecutor::FindInvalidTriangles(mesh_, to, moved);
   std::vector<uint32_t> touched, log, stuck;
   FlipCounts counts;
+  if (moved == nullptr && invalid.size() > options_.rebuild_fraction *
+                                               mesh_.num_triangles()) {
+    // So much of the mesh is tangled that a rebuild is cheaper.
+    report->fix_seconds += SecondsSince(t0);
+    too_tangled_ = true;
+    return false;
+  }
   const bool fixed = KineticExecutor::Fix(mesh_, to, std::move(invalid),
                                           scratch_, &counts, &touched, &log,
                                           &stuck);
@@ -448,7 +460,7 @@ bool Triangulation::LocalUpdate(const std::vector<Vec2>& next,
   // 2. Kinetic step. Vertices of triangles that fixing cannot repair have
   //    their own motion halved (a local sub-step) and finish it in later
   //    sub-steps; after kMaxHalvings they are removed and re-inserted.
-  constexpr int kMaxHalvings = 4;
+  const int kMaxHalvings = options_.max_halvings;
   const uint32_t max_removed =
       std::max<uint32_t>(64, static_cast<uint32_t>(sites_.size() / 8));
   std::vector<uint32_t> removed;
@@ -476,8 +488,22 @@ bool Triangulation::LocalUpdate(const std::vector<Vec2>& next,
                    removal_touched_.end());
     }
     std::vector<uint32_t> stuck;
-    if (TryStep(goal, sparse ? &moved : nullptr, sparse ? &seeds : nullptr, 0,
-                report, &stuck)) {
+    too_tangled_ = false;
+    const bool passed =
+        TryStep(goal, sparse ? &moved : nullptr, sparse ? &seeds : nullptr, 0,
+                report, &stuck);
+    if (too_tangled_) {
+      *reason = absl::StrCat("over ", options_.rebuild_fraction * 100,
+                             "% of the triangles inverted: rebuilding is "
+                             "cheaper");
+      return false;
+    }
+    if (attempt >= options_.max_passes) {
+      *reason = absl::StrCat("still stuck after ", attempt,
+                             " passes: rebuilding is cheaper");
+      return false;
+    }
+    if (passed) {
       removal_touched_.clear();
       // Held-back vertices now finish their motion.
       std::vector<uint32_t> held;

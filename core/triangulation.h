@@ -49,6 +49,14 @@ struct TriangulationOptions {
   // the cheaper local sub-steps: only the stuck vertices' motion is halved
   // (up to 4 times) before they are re-inserted.
   int max_subdivision_depth = 0;
+  // Local sub-steps: how often a stuck vertex's own motion may be halved
+  // before it is removed and re-inserted instead.
+  int max_halvings = 4;
+  // Rebuild at once when more than this fraction of all triangles is
+  // invalid after moving (local repair would cost more than CGAL).
+  double rebuild_fraction = 0.04;
+  // Rebuild when the kinetic passes of one step exceed this number.
+  int max_passes = 64;
   double renumber_stretch = 2.0;  // renumber when edge span grows this much
   int renumber_check_interval = 8;  // steps between locality checks
 };
@@ -168,6 +176,7 @@ class Triangulation {
   std::vector<uint32_t> line_rank_;    // line mode: rank of each site
 
   FlipScratch scratch_;
+  bool too_tangled_ = false;
   std::vector<uint32_t> removal_touched_;
   double baseline_span_ = 0.0;
   uint64_t steps_ = 0;
