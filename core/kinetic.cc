@@ -15,33 +15,9 @@ namespace {
 
 constexpr size_t kBlock = 4096;
 
-// Indices i in [0, n) with pred(i), ascending; independent of thread count.
 template <typename Pred>
 std::vector<uint32_t> Filter(size_t n, Pred&& pred) {
-  const size_t blocks = (n + kBlock - 1) / kBlock;
-  std::vector<uint32_t> count(blocks + 1, 0);
-  ParallelFor(
-      0, blocks,
-      [&](size_t b) {
-        uint32_t c = 0;
-        const size_t end = std::min(n, (b + 1) * kBlock);
-        for (size_t i = b * kBlock; i < end; ++i) c += pred(i) ? 1 : 0;
-        count[b + 1] = c;
-      },
-      1);
-  std::partial_sum(count.begin(), count.end(), count.begin());
-  std::vector<uint32_t> out(count[blocks]);
-  ParallelFor(
-      0, blocks,
-      [&](size_t b) {
-        uint32_t k = count[b];
-        const size_t end = std::min(n, (b + 1) * kBlock);
-        for (size_t i = b * kBlock; i < end; ++i) {
-          if (pred(i)) out[k++] = static_cast<uint32_t>(i);
-        }
-      },
-      1);
-  return out;
+  return FilterIndices(n, std::forward<Pred>(pred));
 }
 
 void SortUnique(std::vector<uint32_t>& v) {

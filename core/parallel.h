@@ -13,7 +13,9 @@
 #include <tbb/parallel_for.h>
 
 #include <cstddef>
+#include <algorithm>
 #include <cstdint>
+#include <vector>
 
 namespace kinetri::core {
 
@@ -43,6 +45,37 @@ void ParallelChunks(size_t begin, size_t end, Fn&& fn, size_t grain = 2048) {
                     [&](const tbb::blocked_range<size_t>& r) {
                       fn(r.begin(), r.end());
                     });
+}
+
+// Indices i in [0, n) with pred(i), ascending. Fixed-size blocks make the
+// result independent of the thread count.
+template <typename Pred>
+std::vector<uint32_t> FilterIndices(size_t n, Pred&& pred) {
+  constexpr size_t kBlock = 4096;
+  const size_t blocks = (n + kBlock - 1) / kBlock;
+  std::vector<uint32_t> count(blocks + 1, 0);
+  ParallelFor(
+      0, blocks,
+      [&](size_t b) {
+        uint32_t c = 0;
+        const size_t end = std::min(n, (b + 1) * kBlock);
+        for (size_t i = b * kBlock; i < end; ++i) c += pred(i) ? 1 : 0;
+        count[b + 1] = c;
+      },
+      1);
+  for (size_t b = 0; b < blocks; ++b) count[b + 1] += count[b];
+  std::vector<uint32_t> out(count[blocks]);
+  ParallelFor(
+      0, blocks,
+      [&](size_t b) {
+        uint32_t k = count[b];
+        const size_t end = std::min(n, (b + 1) * kBlock);
+        for (size_t i = b * kBlock; i < end; ++i) {
+          if (pred(i)) out[k++] = static_cast<uint32_t>(i);
+        }
+      },
+      1);
+  return out;
 }
 
 }  // namespace kinetri::core

@@ -7,6 +7,7 @@
 #include <tbb/task_arena.h>
 
 #include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <numeric>
@@ -299,7 +300,13 @@ bool Triangulation::TryStep(const std::vector<Vec2>& to,
                     touched.end());
       KineticExecutor::Legalize(mesh_, to, &touched, scratch_, &report->flips);
     }
-    pos_ = to;
+    if (moved == nullptr) {
+      pos_ = to;
+    } else {  // sparse: only the moved sites (and their coincident points)
+      for (uint32_t v : *moved) {
+        for (uint32_t p = v; p != kNoVertex; p = dup_next_[p]) pos_[p] = to[p];
+      }
+    }
     ++report->substeps;
     report->legalize_seconds += SecondsSince(t0);
     return true;
@@ -671,19 +678,47 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
                      batch.ids.size(), " ids"));
   }
   // Validate everything before touching state.
-  std::vector<Vec2> next = pos_;
-  std::vector<uint8_t> seen;
-  if (!dense) seen.assign(n, 0);
-  const size_t count = batch.values.size();
-  for (size_t i = 0; i < count; ++i) {
+  std::vector<Vec2> next(n);
+  const bool delta = batch.mode == DisplacementBatch::Mode::kDelta;
+  auto new_position = [&](size_t i, uint32_t in) {
+    const Vec2& v = batch.values[i];
+    return delta ? Vec2{pos_[in].x + v.x, pos_[in].y + v.y} : v;
+  };
+  auto check = [&](size_t i, uint32_t ext, const Vec2& p) -> absl::Status {
     const Vec2& v = batch.values[i];
     if (std::isnan(v.x) || std::isnan(v.y) || std::isinf(v.x) ||
         std::isinf(v.y)) {
       return CheckPosition(v, field, i);
     }
-    uint32_t ext = static_cast<uint32_t>(i);
-    if (!dense) {
-      ext = batch.ids[i];
+    return CheckPosition(p, "new position of point", ext);
+  };
+  if (dense) {
+    // Parallel, in internal order; the first bad entry (by index) is
+    // reported, as a sequential scan would.
+    std::atomic<uint64_t> first_bad{UINT64_MAX};
+    Run([&] {
+      ParallelFor(0, n, [&](size_t in) {
+        const uint32_t ext = ext_of_int_[in];
+        const Vec2 p = new_position(ext, static_cast<uint32_t>(in));
+        next[in] = p;
+        const Vec2& v = batch.values[ext];
+        if (!(std::isfinite(v.x) && std::isfinite(v.y) &&
+              InExactDomain(p.x) && InExactDomain(p.y))) {
+          uint64_t cur = first_bad.load();
+          while (ext < cur && !first_bad.compare_exchange_weak(cur, ext)) {
+          }
+        }
+      });
+    });
+    if (first_bad.load() != UINT64_MAX) {
+      const uint32_t ext = static_cast<uint32_t>(first_bad.load());
+      return check(ext, ext, next[int_of_ext_[ext]]);
+    }
+  } else {
+    next = pos_;
+    std::vector<uint8_t> seen(n, 0);
+    for (size_t i = 0; i < batch.ids.size(); ++i) {
+      const uint32_t ext = batch.ids[i];
       if (ext >= n) {
         return absl::NotFoundError(absl::StrCat(
             "ids[", i, "] = ", ext, ": no such point (size ", n, ")"));
@@ -693,21 +728,19 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
             absl::StrCat("ids[", i, "] = ", ext, " appears twice"));
       }
       seen[ext] = 1;
+      const uint32_t in = int_of_ext_[ext];
+      const Vec2 p = new_position(i, in);
+      absl::Status st = check(i, ext, p);
+      if (!st.ok()) return st;
+      next[in] = p;
     }
-    const uint32_t in = int_of_ext_[ext];
-    const Vec2 p = batch.mode == DisplacementBatch::Mode::kDelta
-                       ? Vec2{pos_[in].x + v.x, pos_[in].y + v.y}
-                       : v;
-    absl::Status s = CheckPosition(p, "new position of point", ext);
-    if (!s.ok()) return s;
-    next[in] = p;
   }
 
   StepReport report;
   std::vector<uint32_t> moved;
-  for (uint32_t i = 0; i < n; ++i) {
-    if (next[i] != pos_[i]) moved.push_back(i);
-  }
+  Run([&] {
+    moved = FilterIndices(n, [&](size_t i) { return next[i] != pos_[i]; });
+  });
   report.moved_points = static_cast<uint32_t>(moved.size());
   ++steps_;
   if (moved.empty()) {
