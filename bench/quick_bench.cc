@@ -22,7 +22,8 @@
 #include "core/queries.h"
 #include "core/triangulation.h"
 
-ABSL_FLAG(uint32_t, n, 1000000, "number of points (uniform in the unit square)");
+ABSL_FLAG(uint32_t, n, 1000000,
+          "number of points (uniform in the unit square)");
 ABSL_FLAG(int, steps, 5, "number of Brownian steps to time");
 ABSL_FLAG(double, sigma, 0.1,
           "Brownian step standard deviation, in units of the mean spacing "
@@ -76,8 +77,8 @@ double NanoflannAllNN(const std::vector<Vec2>& pts, int threads,
   Tree tree(2, cloud, nanoflann::KDTreeSingleIndexAdaptorParams(10));
   *build_s = Seconds(t0);
   std::vector<uint32_t> nn(pts.size());
-  const int nt = threads > 0 ? threads
-                             : std::max(1u, std::thread::hardware_concurrency());
+  const int nt =
+      threads > 0 ? threads : std::max(1u, std::thread::hardware_concurrency());
   std::vector<std::thread> pool;
   const size_t chunk = (pts.size() + nt - 1) / nt;
   for (int t = 0; t < nt; ++t) {
@@ -100,7 +101,8 @@ double NanoflannAllNN(const std::vector<Vec2>& pts, int threads,
 
 int main(int argc, char** argv) {
   absl::SetProgramUsageMessage(
-      "Times Kinetri's kinetic update against a CGAL rebuild and its all-points "
+      "Times Kinetri's kinetic update against a CGAL rebuild and its "
+      "all-points "
       "nearest-neighbour query against nanoflann (build + 2-NN), in one run.");
   absl::ParseCommandLine(argc, argv);
   const uint32_t n = absl::GetFlag(FLAGS_n);
@@ -124,9 +126,10 @@ int main(int argc, char** argv) {
     std::fprintf(stderr, "%s\n", tri.status().ToString().c_str());
     return 1;
   }
-  std::printf("n=%u threads=%d sigma=%.3g spacing; initial build (CGAL + "
-              "convert + Hilbert) %.3f s\n",
-              n, tri->num_threads(), absl::GetFlag(FLAGS_sigma), Seconds(t0));
+  std::printf(
+      "n=%u threads=%d sigma=%.3g spacing; initial build (CGAL + "
+      "convert + Hilbert) %.3f s\n",
+      n, tri->num_threads(), absl::GetFlag(FLAGS_sigma), Seconds(t0));
   double update_total = 0.0, cgal_total = 0.0;
   for (int s = 0; s < steps; ++s) {
     std::vector<Vec2> d(n);
@@ -164,12 +167,14 @@ int main(int argc, char** argv) {
   const double nf_s = NanoflannAllNN(tri->Positions(), threads, &nf_build);
   const double up_ratio = update_total / cgal_total;
   const double nn_ratio = nn_s / nf_s;
-  std::printf("update: mean %.4f s vs CGAL rebuild %.4f s -> ratio %.4f "
-              "(goal < 0.05)\n",
-              update_total / steps, cgal_total / steps, up_ratio);
-  std::printf("all-points NN: %.4f s vs nanoflann build %.4f s + query "
-              "%.4f s = %.4f s -> ratio %.4f (goal < 0.033)\n",
-              nn_s, nf_build, nf_s - nf_build, nf_s, nn_ratio);
+  std::printf(
+      "update: mean %.4f s vs CGAL rebuild %.4f s -> ratio %.4f "
+      "(goal < 0.05)\n",
+      update_total / steps, cgal_total / steps, up_ratio);
+  std::printf(
+      "all-points NN: %.4f s vs nanoflann build %.4f s + query "
+      "%.4f s = %.4f s -> ratio %.4f (goal < 0.033)\n",
+      nn_s, nf_build, nf_s - nf_build, nf_s, nn_ratio);
   std::printf(
       "JSON {\"n\":%u,\"threads\":%d,\"sigma\":%g,\"update_s\":%.6f,"
       "\"cgal_rebuild_s\":%.6f,\"update_ratio\":%.5f,\"allnn_s\":%.6f,"

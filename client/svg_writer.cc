@@ -36,8 +36,8 @@ absl::Status WriteTriangulationSvg(const core::Triangulation& t,
   std::ofstream out(path);
   if (!out) return absl::UnavailableError(absl::StrCat("cannot write ", path));
   out << "<svg xmlns='http://www.w3.org/2000/svg' width='" << options.size_px
-      << "' height='" << options.size_px << "' viewBox='0 0 "
-      << options.size_px << " " << options.size_px << "'>\n"
+      << "' height='" << options.size_px << "' viewBox='0 0 " << options.size_px
+      << " " << options.size_px << "'>\n"
       << "<rect width='100%' height='100%' fill='white'/>\n"
       << "<g stroke='#3a6ea5' stroke-width='0.6' fill='none'>\n";
   for (const auto& [a, b] : t.Edges()) {

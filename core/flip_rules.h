@@ -123,8 +123,8 @@ struct FixProposal {
 // triangles; hull releases keep it (they create one valid triangle) and
 // shrink the hull by one vertex. So (invalid finite triangles, hull size)
 // decreases lexicographically with every flip.
-KINETRI_HD inline FixProposal ProposeFixFlip(const MeshView& m,
-                                             const Vec2* pos, uint32_t t) {
+KINETRI_HD inline FixProposal ProposeFixFlip(const MeshView& m, const Vec2* pos,
+                                             uint32_t t) {
   FixProposal out;
   if (m.IsGhost(t)) {
     // kHullRelease: spoke a->inf with hull p -> a -> q reflex at a.
@@ -149,8 +149,7 @@ KINETRI_HD inline FixProposal ProposeFixFlip(const MeshView& m,
     const uint32_t c = m.Apex(e), d = m.Apex(f);
     if (d != kInfiniteVertex) {
       if (c != d && Orient2d(pos[d], pos[c], pos[a]) > 0 &&
-          Orient2d(pos[c], pos[d], pos[b]) > 0 &&
-          !Adjacent(m, Prev(e), d)) {
+          Orient2d(pos[c], pos[d], pos[b]) > 0 && !Adjacent(m, Prev(e), d)) {
         out.edge = e;
         out.kind = kInteriorFlip;
         out.new_u = c;

@@ -103,8 +103,8 @@ std::vector<uint32_t> KineticExecutor::TrianglesAround(
     const Mesh& mesh, const std::vector<uint32_t>& vertices) {
   const MeshView m = mesh.view();
   const auto& ve = mesh.vertex_edge();
-  std::vector<std::vector<uint32_t>> parts(
-      (vertices.size() + kBlock - 1) / kBlock);
+  std::vector<std::vector<uint32_t>> parts((vertices.size() + kBlock - 1) /
+                                           kBlock);
   ParallelFor(
       0, parts.size(),
       [&](size_t b) {
@@ -229,7 +229,8 @@ bool KineticExecutor::Fix(Mesh& mesh, const std::vector<Vec2>& pos,
       next.insert(next.end(), fp, fp + 6);
       if (touched) touched->insert(touched->end(), fp, fp + 2);
     }
-    ParallelFor(0, winners.size(), [&](size_t i) { m.Flip(edges[winners[i]]); });
+    ParallelFor(0, winners.size(),
+                [&](size_t i) { m.Flip(edges[winners[i]]); });
     for (uint32_t w : winners) mesh.UpdateVertexEdgesAfterFlip(edges[w]);
     if (log) {
       for (uint32_t w : winners) log->push_back(edges[w]);
@@ -260,9 +261,8 @@ bool KineticExecutor::Fix(Mesh& mesh, const std::vector<Vec2>& pos,
   // ghost triangles, whose vertices are the ones to hold back.
   if (stuck) {
     const std::vector<uint32_t> ghosts =
-        Filter(mesh.num_triangles(), [&](size_t t) {
-          return m.IsGhost(static_cast<uint32_t>(t));
-        });
+        Filter(mesh.num_triangles(),
+               [&](size_t t) { return m.IsGhost(static_cast<uint32_t>(t)); });
     stuck->insert(stuck->end(), ghosts.begin(), ghosts.end());
   }
   return false;
@@ -285,8 +285,8 @@ void KineticExecutor::Legalize(Mesh& mesh, const std::vector<Vec2>& pos,
   const Vec2* p = pos.data();
   std::vector<uint32_t> work;
   if (seed_triangles == nullptr) {
-    work = Filter(mesh.num_half_edges(),
-                  [&](size_t e) { return e < m.twin[e]; });
+    work =
+        Filter(mesh.num_half_edges(), [&](size_t e) { return e < m.twin[e]; });
   } else {
     work.reserve(seed_triangles->size() * 3);
     for (uint32_t t : *seed_triangles) {
@@ -300,15 +300,15 @@ void KineticExecutor::Legalize(Mesh& mesh, const std::vector<Vec2>& pos,
   std::vector<uint32_t>& tri_claim = scratch.tri_claim;
   std::vector<uint32_t> no_vertices;
   while (true) {
-    std::vector<uint32_t> idx = Filter(work.size(), [&](size_t i) {
-      return rules::IsIllegal(m, p, work[i]);
-    });
+    std::vector<uint32_t> idx = Filter(
+        work.size(), [&](size_t i) { return rules::IsIllegal(m, p, work[i]); });
     if (idx.empty()) break;
     std::vector<uint32_t> edges(idx.size());
     for (size_t i = 0; i < idx.size(); ++i) edges[i] = work[idx[i]];
     const std::vector<uint32_t> winners =
         SelectIndependent(m, edges, nullptr, tri_claim, no_vertices);
-    ParallelFor(0, winners.size(), [&](size_t i) { m.Flip(edges[winners[i]]); });
+    ParallelFor(0, winners.size(),
+                [&](size_t i) { m.Flip(edges[winners[i]]); });
     for (uint32_t w : winners) mesh.UpdateVertexEdgesAfterFlip(edges[w]);
     // Next worklist: losers plus the four outer edges of each flipped quad.
     std::vector<uint32_t> next;
@@ -346,9 +346,8 @@ bool KineticExecutor::HullWindsOnce(const Mesh& mesh,
   const MeshView m = mesh.view();
   // Find one ghost triangle (parallel search, first by index).
   const std::vector<uint32_t> ghosts =
-      Filter(mesh.num_triangles(), [&](size_t t) {
-        return m.IsGhost(static_cast<uint32_t>(t));
-      });
+      Filter(mesh.num_triangles(),
+             [&](size_t t) { return m.IsGhost(static_cast<uint32_t>(t)); });
   if (ghosts.size() < 3) return false;
   // Walk the hull: from ghost g with spoke a->inf, the next ghost is across
   // the half-edge inf->q, i.e. across Next(spoke).

@@ -19,10 +19,10 @@
 namespace kinetri::core {
 
 struct FlipCounts {
-  uint64_t interior_fix = 0;   // flips repairing inverted triangles
-  uint64_t hull_absorb = 0;    // vertices that crossed a hull edge
-  uint64_t hull_release = 0;   // hull vertices that became reflex
-  uint64_t delaunay = 0;       // legalizing flips
+  uint64_t interior_fix = 0;  // flips repairing inverted triangles
+  uint64_t hull_absorb = 0;   // vertices that crossed a hull edge
+  uint64_t hull_release = 0;  // hull vertices that became reflex
+  uint64_t delaunay = 0;      // legalizing flips
   uint32_t fix_rounds = 0;
   uint32_t legalize_rounds = 0;
 

@@ -12,8 +12,8 @@
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
 
-#include <cstddef>
 #include <algorithm>
+#include <cstddef>
 #include <cstdint>
 #include <vector>
 
@@ -41,10 +41,9 @@ void ParallelChunks(size_t begin, size_t end, Fn&& fn, size_t grain = 2048) {
     fn(begin, end);
     return;
   }
-  tbb::parallel_for(tbb::blocked_range<size_t>(begin, end, grain),
-                    [&](const tbb::blocked_range<size_t>& r) {
-                      fn(r.begin(), r.end());
-                    });
+  tbb::parallel_for(
+      tbb::blocked_range<size_t>(begin, end, grain),
+      [&](const tbb::blocked_range<size_t>& r) { fn(r.begin(), r.end()); });
 }
 
 // Indices i in [0, n) with pred(i), ascending. Fixed-size blocks make the

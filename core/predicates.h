@@ -68,8 +68,8 @@ KINETRI_HD inline int Orient2dExact(const Vec2& a, const Vec2& b,
   return Sign(det);
 }
 
-KINETRI_HD inline int InCircleExact(const Vec2& a, const Vec2& b,
-                                    const Vec2& c, const Vec2& d) {
+KINETRI_HD inline int InCircleExact(const Vec2& a, const Vec2& b, const Vec2& c,
+                                    const Vec2& d) {
   using namespace exact;
   const Expansion<2> adx = Diff(a.x, d.x), ady = Diff(a.y, d.y);
   const Expansion<2> bdx = Diff(b.x, d.x), bdy = Diff(b.y, d.y);
@@ -121,8 +121,8 @@ KINETRI_HD inline int CompareDistanceExact(const Vec2& q, const Vec2& a,
   return Sign(det);
 }
 
-KINETRI_HD inline int CompareDistanceToRadiusExact(const Vec2& q,
-                                                   const Vec2& p, double r) {
+KINETRI_HD inline int CompareDistanceToRadiusExact(const Vec2& q, const Vec2& p,
+                                                   double r) {
   using namespace exact;
   const Expansion<2> dx = Diff(q.x, p.x), dy = Diff(q.y, p.y);
   Expansion<8> xx, yy;
@@ -165,10 +165,9 @@ KINETRI_HD inline int InCircle(const Vec2& a, const Vec2& b, const Vec2& c,
   const double clift = cdx * cdx + cdy * cdy;
   const double det = alift * (bdxcdy - cdxbdy) + blift * (cdxady - adxcdy) +
                      clift * (adxbdy - bdxady);
-  const double permanent =
-      (std::fabs(bdxcdy) + std::fabs(cdxbdy)) * alift +
-      (std::fabs(cdxady) + std::fabs(adxcdy)) * blift +
-      (std::fabs(adxbdy) + std::fabs(bdxady)) * clift;
+  const double permanent = (std::fabs(bdxcdy) + std::fabs(cdxbdy)) * alift +
+                           (std::fabs(cdxady) + std::fabs(adxcdy)) * blift +
+                           (std::fabs(adxbdy) + std::fabs(bdxady)) * clift;
   const double errbound = internal::kIccErrBoundA * permanent;
   if (det > errbound || -det > errbound) return internal::SignOf(det);
   return internal::InCircleExact(a, b, c, d);

@@ -21,7 +21,7 @@ struct Hit {
 
 struct Query {
   Vec2 q;
-  uint32_t self_ext = kNoVertex;   // point to exclude
+  uint32_t self_ext = kNoVertex;    // point to exclude
   uint32_t start_site = kNoVertex;  // walk start (kNoVertex: use a hint)
 };
 
@@ -50,11 +50,11 @@ absl::Status CheckQueryPosition(const Vec2& p, size_t i) {
     const double c = axis == 0 ? p.x : p.y;
     const char* name = axis == 0 ? "x" : "y";
     if (std::isnan(c) || std::isinf(c) || !InExactDomain(c)) {
-      return absl::InvalidArgumentError(absl::StrCat(
-          "queries[", i, "].", name, " = ", c,
-          std::isnan(c)   ? " is NaN"
-          : std::isinf(c) ? " is infinite"
-                          : " is outside the exact range"));
+      return absl::InvalidArgumentError(
+          absl::StrCat("queries[", i, "].", name, " = ", c,
+                       std::isnan(c)   ? " is NaN"
+                       : std::isinf(c) ? " is infinite"
+                                       : " is outside the exact range"));
     }
   }
   return absl::OkStatus();
@@ -89,9 +89,9 @@ absl::StatusOr<std::vector<Query>> PointQueries(const Triangulation& t,
   std::vector<Query> out(ids.size());
   for (size_t i = 0; i < ids.size(); ++i) {
     if (ids[i] >= v.num_points) {
-      return absl::NotFoundError(absl::StrCat(
-          "ids[", i, "] = ", ids[i], ": no such point (size ", v.num_points,
-          ")"));
+      return absl::NotFoundError(absl::StrCat("ids[", i, "] = ", ids[i],
+                                              ": no such point (size ",
+                                              v.num_points, ")"));
     }
     const uint32_t in = v.int_of_ext[ids[i]];
     out[i].q = v.pos[in];
@@ -179,9 +179,9 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
     out.offsets[i + 1] = out.offsets[i] + rows[i].size();
   }
   if (limits.max_total_results && out.offsets[nq] > limits.max_total_results) {
-    return absl::ResourceExhaustedError(
-        absl::StrCat("query produced ", out.offsets[nq],
-                     " results, above the limit of ", limits.max_total_results));
+    return absl::ResourceExhaustedError(absl::StrCat(
+        "query produced ", out.offsets[nq], " results, above the limit of ",
+        limits.max_total_results));
   }
   out.ids.resize(out.offsets[nq]);
   out.distances.resize(out.offsets[nq]);
@@ -204,29 +204,29 @@ absl::StatusOr<NeighborLists> KNearestImpl(const Triangulation& t,
     return absl::InvalidArgumentError(absl::StrCat("k = ", k, " must be > 0"));
   }
   const size_t want = static_cast<size_t>(k);
-  return RunRows(t, queries, limits,
-                 [want](const TriangulationView& v, const Query& q,
-                        uint32_t root, std::vector<Hit>& out) {
-                   auto later = [&](uint32_t a, uint32_t b) {
-                     return CompareCloser(q.q, v.pos[a], v.pos[b]) > 0;
-                   };
-                   std::priority_queue<uint32_t, std::vector<uint32_t>,
-                                       decltype(later)>
-                       heap(later);
-                   absl::flat_hash_set<uint32_t> seen;
-                   heap.push(root);
-                   seen.insert(root);
-                   while (!heap.empty() && out.size() < want) {
-                     const uint32_t s = heap.top();
-                     heap.pop();
-                     EmitSite(v, s, q.q, q.self_ext, out);
-                     v.ForEachNeighbor(s, [&](uint32_t w) {
-                       if (seen.insert(w).second) heap.push(w);
-                     });
-                   }
-                   if (out.size() > want) out.resize(want);
-                   return false;
-                 });
+  return RunRows(
+      t, queries, limits,
+      [want](const TriangulationView& v, const Query& q, uint32_t root,
+             std::vector<Hit>& out) {
+        auto later = [&](uint32_t a, uint32_t b) {
+          return CompareCloser(q.q, v.pos[a], v.pos[b]) > 0;
+        };
+        std::priority_queue<uint32_t, std::vector<uint32_t>, decltype(later)>
+            heap(later);
+        absl::flat_hash_set<uint32_t> seen;
+        heap.push(root);
+        seen.insert(root);
+        while (!heap.empty() && out.size() < want) {
+          const uint32_t s = heap.top();
+          heap.pop();
+          EmitSite(v, s, q.q, q.self_ext, out);
+          v.ForEachNeighbor(s, [&](uint32_t w) {
+            if (seen.insert(w).second) heap.push(w);
+          });
+        }
+        if (out.size() > want) out.resize(want);
+        return false;
+      });
 }
 
 absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,

@@ -44,7 +44,9 @@ struct NeighborLists {
   std::vector<double> distances;   // Euclidean, rounded to double
   std::vector<uint8_t> truncated;  // per query: max_results cut the row
 
-  size_t num_queries() const { return offsets.empty() ? 0 : offsets.size() - 1; }
+  size_t num_queries() const {
+    return offsets.empty() ? 0 : offsets.size() - 1;
+  }
   size_t row_size(size_t i) const { return offsets[i + 1] - offsets[i]; }
 };
 
@@ -59,8 +61,8 @@ absl::StatusOr<NeighborLists> AllNearestNeighbors(const Triangulation& t);
 
 // k nearest points of each position.
 absl::StatusOr<NeighborLists> KNearest(const Triangulation& t,
-                                       absl::Span<const Vec2> queries,
-                                       int k, QueryLimits limits = {});
+                                       absl::Span<const Vec2> queries, int k,
+                                       QueryLimits limits = {});
 
 // k nearest points of each given point; exclude_self drops the point itself
 // (its coincident duplicates are still reported).

@@ -166,11 +166,10 @@ void Triangulation::Rebuild(const std::vector<Vec2>& positions_by_ext) {
   // Group coincident points: lexicographic sort with id as tie-break.
   std::vector<uint32_t> by_pos(n);
   std::iota(by_pos.begin(), by_pos.end(), 0u);
-  tbb::parallel_sort(by_pos.begin(), by_pos.end(),
-                     [&](uint32_t a, uint32_t b) {
-                       if (pos_[a] != pos_[b]) return LexLess(pos_[a], pos_[b]);
-                       return a < b;
-                     });
+  tbb::parallel_sort(by_pos.begin(), by_pos.end(), [&](uint32_t a, uint32_t b) {
+    if (pos_[a] != pos_[b]) return LexLess(pos_[a], pos_[b]);
+    return a < b;
+  });
   rep_.assign(n, kNoVertex);
   dup_next_.assign(n, kNoVertex);
   has_duplicates_ = false;
@@ -277,16 +276,15 @@ bool Triangulation::TryStep(const std::vector<Vec2>& to,
       KineticExecutor::FindInvalidTriangles(mesh_, to, moved);
   std::vector<uint32_t> touched, log, stuck;
   FlipCounts counts;
-  if (moved == nullptr && invalid.size() > options_.rebuild_fraction *
-                                               mesh_.num_triangles()) {
+  if (moved == nullptr &&
+      invalid.size() > options_.rebuild_fraction * mesh_.num_triangles()) {
     // So much of the mesh is tangled that a rebuild is cheaper.
     report->fix_seconds += SecondsSince(t0);
     too_tangled_ = true;
     return false;
   }
-  const bool fixed = KineticExecutor::Fix(mesh_, to, std::move(invalid),
-                                          scratch_, &counts, &touched, &log,
-                                          &stuck);
+  const bool fixed = KineticExecutor::Fix(
+      mesh_, to, std::move(invalid), scratch_, &counts, &touched, &log, &stuck);
   report->fix_seconds += SecondsSince(t0);
   t0 = std::chrono::steady_clock::now();
   if (fixed) {
@@ -296,8 +294,7 @@ bool Triangulation::TryStep(const std::vector<Vec2>& to,
     } else {
       touched.insert(touched.end(), seeds->begin(), seeds->end());
       std::sort(touched.begin(), touched.end());
-      touched.erase(std::unique(touched.begin(), touched.end()),
-                    touched.end());
+      touched.erase(std::unique(touched.begin(), touched.end()), touched.end());
       KineticExecutor::Legalize(mesh_, to, &touched, scratch_, &report->flips);
     }
     if (moved == nullptr) {
@@ -376,8 +373,9 @@ bool Triangulation::InsertBatch(std::vector<uint32_t> pending,
         [&](size_t i) {
           const uint32_t v = pending[i];
           const uint32_t h = hints[v];
-          const uint32_t start =
-              (h < ve.size() && ve[h] != kNoEdge) ? TriangleOf(ve[h]) : fallback;
+          const uint32_t start = (h < ve.size() && ve[h] != kNoEdge)
+                                     ? TriangleOf(ve[h])
+                                     : fallback;
           loc[i] = VertexOps::Locate(mesh_, pos_, pos_[v], start);
         },
         16);
@@ -496,9 +494,8 @@ bool Triangulation::LocalUpdate(const std::vector<Vec2>& next,
     }
     std::vector<uint32_t> stuck;
     too_tangled_ = false;
-    const bool passed =
-        TryStep(goal, sparse ? &moved : nullptr, sparse ? &seeds : nullptr, 0,
-                report, &stuck);
+    const bool passed = TryStep(goal, sparse ? &moved : nullptr,
+                                sparse ? &seeds : nullptr, 0, report, &stuck);
     if (too_tangled_) {
       *reason = absl::StrCat("over ", options_.rebuild_fraction * 100,
                              "% of the triangles inverted: rebuilding is "
@@ -605,8 +602,9 @@ bool Triangulation::LocalUpdate(const std::vector<Vec2>& next,
     ++report->local_halvings;
     if (removed.size() + to_remove.size() > max_removed ||
         sites_.size() - removed.size() - to_remove.size() < 8) {
-      *reason = absl::StrCat("fixing stuck; ", removed.size() + to_remove.size(),
-                             " vertices to re-insert exceed the local budget");
+      *reason =
+          absl::StrCat("fixing stuck; ", removed.size() + to_remove.size(),
+                       " vertices to re-insert exceed the local budget");
       return false;
     }
     const auto t_remove = std::chrono::steady_clock::now();
@@ -702,8 +700,8 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
         const Vec2 p = new_position(ext, static_cast<uint32_t>(in));
         next[in] = p;
         const Vec2& v = batch.values[ext];
-        if (!(std::isfinite(v.x) && std::isfinite(v.y) &&
-              InExactDomain(p.x) && InExactDomain(p.y))) {
+        if (!(std::isfinite(v.x) && std::isfinite(v.y) && InExactDomain(p.x) &&
+              InExactDomain(p.y))) {
           uint64_t cur = first_bad.load();
           while (ext < cur && !first_bad.compare_exchange_weak(cur, ext)) {
           }
@@ -757,7 +755,7 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
       ok = LocalUpdate(next, moved, &report, &reason);
     }
     if (ok) {
-      report.path = report.reinserted > 0    ? UpdatePath::kReinserted
+      report.path = report.reinserted > 0 ? UpdatePath::kReinserted
                     : report.substeps > 1 ? UpdatePath::kSubdivided
                                           : UpdatePath::kLocal;
       if (options_.renumber_check_interval > 0 &&
@@ -776,9 +774,9 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
     }
   });
   report.num_sites = num_sites();
-  report.seconds = std::chrono::duration<double>(
-                       std::chrono::steady_clock::now() - start)
-                       .count();
+  report.seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start)
+          .count();
   return report;
 }
 

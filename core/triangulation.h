@@ -23,14 +23,14 @@
 #ifndef KINETRI_CORE_TRIANGULATION_H_
 #define KINETRI_CORE_TRIANGULATION_H_
 
+#include <tbb/task_arena.h>
+
 #include <cstdint>
 #include <functional>
 #include <memory>
 #include <string>
 #include <utility>
 #include <vector>
-
-#include <tbb/task_arena.h>
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
@@ -43,7 +43,7 @@
 namespace kinetri::core {
 
 struct TriangulationOptions {
-  int num_threads = 0;            // 0: all cores
+  int num_threads = 0;  // 0: all cores
   // Whole-step splitting: a step whose fixing gets stuck is split into at
   // most 2^depth sub-steps for all points. 0 (default) leaves splitting to
   // the cheaper local sub-steps: only the stuck vertices' motion is halved
@@ -57,7 +57,7 @@ struct TriangulationOptions {
   double rebuild_fraction = 0.04;
   // Rebuild when the kinetic passes of one step exceed this number.
   int max_passes = 64;
-  double renumber_stretch = 2.0;  // renumber when edge span grows this much
+  double renumber_stretch = 2.0;    // renumber when edge span grows this much
   int renumber_check_interval = 8;  // steps between locality checks
 };
 
@@ -83,14 +83,14 @@ const char* UpdatePathName(UpdatePath path);
 struct StepReport {
   UpdatePath path = UpdatePath::kNoop;
   uint32_t moved_points = 0;
-  uint32_t substeps = 0;  // local sub-steps taken (1 = not split)
+  uint32_t substeps = 0;         // local sub-steps taken (1 = not split)
   uint32_t failed_attempts = 0;  // fixing attempts that got stuck
-  uint32_t reinserted = 0;  // vertices removed and inserted again locally
-  uint32_t local_halvings = 0;  // rounds that halved stuck vertices' motion
+  uint32_t reinserted = 0;       // vertices removed and inserted again locally
+  uint32_t local_halvings = 0;   // rounds that halved stuck vertices' motion
   FlipCounts flips;
   std::string fallback_reason;  // why the step was rebuilt, if it was
   bool renumbered = false;
-  uint32_t num_sites = 0;   // distinct positions after the step
+  uint32_t num_sites = 0;  // distinct positions after the step
   double seconds = 0.0;
   // Where the time went (wall clock): fixing attempts, legalizing, removing
   // and inserting vertices again.
@@ -145,8 +145,7 @@ class Triangulation {
   // Local update attempt from pos_ to `to`; false if it must fall back.
   // On failure the mesh is back to a valid state for pos_ and
   // stuck_vertices lists vertices of the triangles that could not be fixed.
-  bool TryStep(const std::vector<Vec2>& to,
-               const std::vector<uint32_t>* moved,
+  bool TryStep(const std::vector<Vec2>& to, const std::vector<uint32_t>* moved,
                const std::vector<uint32_t>* seeds, int depth,
                StepReport* report, std::vector<uint32_t>* stuck_vertices);
   // Kinetic path with re-insertion; false (with reason) means rebuild.
@@ -163,17 +162,17 @@ class Triangulation {
   TriangulationOptions options_;
   std::unique_ptr<tbb::task_arena> arena_;
 
-  std::vector<Vec2> pos_;              // by internal id
+  std::vector<Vec2> pos_;  // by internal id
   std::vector<uint32_t> ext_of_int_;
   std::vector<uint32_t> int_of_ext_;
-  std::vector<uint32_t> rep_;          // site representative, internal id
-  std::vector<uint32_t> dup_next_;     // next point of the same site
+  std::vector<uint32_t> rep_;       // site representative, internal id
+  std::vector<uint32_t> dup_next_;  // next point of the same site
   bool has_duplicates_ = false;
-  std::vector<uint32_t> sites_;        // representatives, ascending
+  std::vector<uint32_t> sites_;  // representatives, ascending
 
-  Mesh mesh_;                          // empty in line mode
-  std::vector<uint32_t> line_;         // line mode: sites in (x, y) order
-  std::vector<uint32_t> line_rank_;    // line mode: rank of each site
+  Mesh mesh_;                        // empty in line mode
+  std::vector<uint32_t> line_;       // line mode: sites in (x, y) order
+  std::vector<uint32_t> line_rank_;  // line mode: rank of each site
 
   FlipScratch scratch_;
   bool too_tangled_ = false;

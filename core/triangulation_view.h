@@ -11,12 +11,12 @@
 namespace kinetri::core {
 
 struct TriangulationView {
-  const Vec2* pos = nullptr;            // by internal id
+  const Vec2* pos = nullptr;  // by internal id
   const uint32_t* ext_of_int = nullptr;
   const uint32_t* int_of_ext = nullptr;
-  const uint32_t* rep = nullptr;        // site representative of each point
-  const uint32_t* dup_next = nullptr;   // next point of the same site
-  const uint32_t* sites = nullptr;      // representatives, ascending
+  const uint32_t* rep = nullptr;       // site representative of each point
+  const uint32_t* dup_next = nullptr;  // next point of the same site
+  const uint32_t* sites = nullptr;     // representatives, ascending
   uint32_t num_points = 0;
   uint32_t num_sites = 0;
   // Planar mode (mesh.num_half_edges > 0):

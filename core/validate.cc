@@ -1,7 +1,7 @@
 // Triangulation::Validate: exact check of topology, geometry and Delaunay.
 #include <atomic>
-#include <vector>
 #include <string>
+#include <vector>
 
 #include "absl/strings/str_cat.h"
 #include "core/flip_rules.h"
@@ -15,8 +15,8 @@ namespace kinetri::core {
 absl::Status Triangulation::Validate() const {
   const uint32_t n = size();
   // Bookkeeping: id maps, sites, coincident-point chains.
-  if (ext_of_int_.size() != n || int_of_ext_.size() != n ||
-      rep_.size() != n || dup_next_.size() != n) {
+  if (ext_of_int_.size() != n || int_of_ext_.size() != n || rep_.size() != n ||
+      dup_next_.size() != n) {
     return absl::InternalError("array sizes disagree");
   }
   for (uint32_t i = 0; i < n; ++i) {
@@ -40,9 +40,9 @@ absl::Status Triangulation::Validate() const {
       uint32_t len = 0;
       for (uint32_t p = r; p != kNoVertex && len <= n; p = dup_next_[p]) ++len;
       if (len != members[r]) {
-        return absl::InternalError(
-            absl::StrCat("chain of site ", r, " has ", len, " points, expected ",
-                         members[r]));
+        return absl::InternalError(absl::StrCat("chain of site ", r, " has ",
+                                                len, " points, expected ",
+                                                members[r]));
       }
       walked += len;
     }
@@ -63,8 +63,8 @@ absl::Status Triangulation::Validate() const {
       if (!LexLess(pos_[line_[r - 1]], pos_[line_[r]])) {
         return absl::InternalError("line mode: sites not strictly ordered");
       }
-      if (r >= 2 && Orient2d(pos_[line_[0]], pos_[line_[1]],
-                             pos_[line_[r]]) != 0) {
+      if (r >= 2 &&
+          Orient2d(pos_[line_[0]], pos_[line_[1]], pos_[line_[r]]) != 0) {
         return absl::InternalError(
             "line mode but sites are not collinear (should be planar)");
       }
@@ -119,13 +119,14 @@ absl::Status Triangulation::Validate() const {
     fan_total += len;
   });
   if (first_error >= 0) {
-    return absl::InternalError(absl::StrCat(
-        "vertex ", first_error.load(),
-        error_kind == 4 ? ": vertex_edge does not leave it"
-                        : ": fan does not close"));
+    return absl::InternalError(
+        absl::StrCat("vertex ", first_error.load(),
+                     error_kind == 4 ? ": vertex_edge does not leave it"
+                                     : ": fan does not close"));
   }
   uint64_t finite_origin = 0;
-  for (uint32_t e = 0; e < ne; ++e) finite_origin += m.origin[e] != kInfiniteVertex;
+  for (uint32_t e = 0; e < ne; ++e)
+    finite_origin += m.origin[e] != kInfiniteVertex;
   if (fan_total != finite_origin) {
     return absl::InternalError(
         "some vertex has more than one fan (mesh not a manifold)");
@@ -135,9 +136,9 @@ absl::Status Triangulation::Validate() const {
     if (!rules::TriangleOk(m, p, static_cast<uint32_t>(t))) fail(t, 6);
   });
   if (first_error >= 0) {
-    return absl::InternalError(absl::StrCat(
-        "triangle ", first_error.load(),
-        " is not counter-clockwise (or its hull turn is reflex)"));
+    return absl::InternalError(
+        absl::StrCat("triangle ", first_error.load(),
+                     " is not counter-clockwise (or its hull turn is reflex)"));
   }
   if (!KineticExecutor::HullWindsOnce(mesh_, pos_)) {
     return absl::InternalError("hull does not wind exactly once");
@@ -146,7 +147,8 @@ absl::Status Triangulation::Validate() const {
   uint64_t ghosts = 0;
   for (uint32_t t = 0; t < mesh_.num_triangles(); ++t) ghosts += m.IsGhost(t);
   const uint64_t finite = mesh_.num_triangles() - ghosts;
-  if (finite + ghosts + 2 != 2 * static_cast<uint64_t>(sites_.size()) + ghosts) {
+  if (finite + ghosts + 2 !=
+      2 * static_cast<uint64_t>(sites_.size()) + ghosts) {
     if (finite != 2 * sites_.size() - ghosts - 2) {
       return absl::InternalError("Euler characteristic is wrong");
     }
@@ -157,8 +159,8 @@ absl::Status Triangulation::Validate() const {
     if (e < m.twin[e] && rules::IsIllegal(m, p, e)) fail(e, 7);
   });
   if (first_error >= 0) {
-    return absl::InternalError(absl::StrCat(
-        "edge ", first_error.load(), " is not locally Delaunay"));
+    return absl::InternalError(
+        absl::StrCat("edge ", first_error.load(), " is not locally Delaunay"));
   }
   return absl::OkStatus();
 }

@@ -25,7 +25,7 @@ class VertexOps {
                      std::vector<uint32_t>* touched, uint64_t* flips);
 
   struct Location {
-    uint32_t triangle = kNoEdge;     // triangle containing p (closed)
+    uint32_t triangle = kNoEdge;      // triangle containing p (closed)
     uint32_t coincident = kNoVertex;  // vertex exactly at p, if any
   };
   // Visibility walk from start_triangle to p (valid Delaunay mesh).

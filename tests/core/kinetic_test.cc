@@ -72,9 +72,8 @@ TEST_P(BrownianTest, EveryStepIsExactDelaunay) {
   ASSERT_TRUE(t.ok());
   std::mt19937_64 rng(12);
   const double f = GetParam();
-  const PathTally tally = RunSequence(*t, 12, [&](int) {
-    return Brownian(n, f * spacing, rng);
-  });
+  const PathTally tally =
+      RunSequence(*t, 12, [&](int) { return Brownian(n, f * spacing, rng); });
   if (f <= 0.1) {
     // Small motion must be handled locally, never by rebuilding.
     EXPECT_EQ(tally.rebuilt, 0) << tally.reasons;
@@ -93,9 +92,8 @@ TEST_P(BrownianTest, LocalRepairAloneStaysExactForLargeMotion) {
   ASSERT_TRUE(t.ok());
   std::mt19937_64 rng(14);
   const double f = GetParam();
-  const PathTally tally = RunSequence(*t, 6, [&](int) {
-    return Brownian(n, f * spacing, rng);
-  });
+  const PathTally tally =
+      RunSequence(*t, 6, [&](int) { return Brownian(n, f * spacing, rng); });
   // Up to 0.1 spacing the local path must finish; beyond, it may give up
   // after its pass budget, but whatever it returns is checked above.
   if (f <= 0.1) {
@@ -135,7 +133,8 @@ TEST(Kinetic, ClusteringAggregationAndDispersal) {
     const double pull = s < 10 ? 0.35 : -0.3;
     for (size_t i = 0; i < n; ++i) {
       const Vec2& a = attractors[i % attractors.size()];
-      d[i] = {pull * (a.x - cur[i].x) + g(rng), pull * (a.y - cur[i].y) + g(rng)};
+      d[i] = {pull * (a.x - cur[i].x) + g(rng),
+              pull * (a.y - cur[i].y) + g(rng)};
     }
     return DisplacementBatch::Dense(std::move(d));
   });
@@ -213,7 +212,8 @@ TEST(Kinetic, DuplicatesMergeAndSeparate) {
     ids.push_back(i);
     target.push_back(pts[i - n / 2]);
   }
-  auto r = t->ApplyDisplacements(DisplacementBatch::AbsoluteSparse(ids, target));
+  auto r =
+      t->ApplyDisplacements(DisplacementBatch::AbsoluteSparse(ids, target));
   ASSERT_TRUE(r.ok()) << r.status();
   ASSERT_TRUE(t->Validate().ok()) << t->Validate();
   EXPECT_EQ(t->num_sites(), n / 2);
@@ -279,8 +279,10 @@ TEST(Kinetic, ResultIndependentOfThreadCount) {
   ASSERT_TRUE(a.ok() && b.ok());
   std::mt19937_64 rng_a(102), rng_b(102);
   for (int s = 0; s < 8; ++s) {
-    auto ra = a->ApplyDisplacements(Brownian(n, 0.5 / std::sqrt(double(n)), rng_a));
-    auto rb = b->ApplyDisplacements(Brownian(n, 0.5 / std::sqrt(double(n)), rng_b));
+    auto ra =
+        a->ApplyDisplacements(Brownian(n, 0.5 / std::sqrt(double(n)), rng_a));
+    auto rb =
+        b->ApplyDisplacements(Brownian(n, 0.5 / std::sqrt(double(n)), rng_b));
     ASSERT_TRUE(ra.ok() && rb.ok());
     EXPECT_EQ(ra->path, rb->path);
     EXPECT_EQ(ra->flips.delaunay, rb->flips.delaunay);
@@ -326,12 +328,14 @@ TEST(Kinetic, BadInputIsRejectedAndChangesNothing) {
   EXPECT_NE(r.status().message().find("expected 300"), std::string::npos);
   expect_unchanged();
 
-  r = t->ApplyDisplacements(DisplacementBatch::Sparse({1, 999}, {{0, 0}, {0, 0}}));
+  r = t->ApplyDisplacements(
+      DisplacementBatch::Sparse({1, 999}, {{0, 0}, {0, 0}}));
   EXPECT_EQ(r.status().code(), absl::StatusCode::kNotFound);
   EXPECT_NE(r.status().message().find("ids[1] = 999"), std::string::npos);
   expect_unchanged();
 
-  r = t->ApplyDisplacements(DisplacementBatch::Sparse({4, 4}, {{0.1, 0}, {0, 0}}));
+  r = t->ApplyDisplacements(
+      DisplacementBatch::Sparse({4, 4}, {{0.1, 0}, {0, 0}}));
   EXPECT_EQ(r.status().code(), absl::StatusCode::kInvalidArgument);
   expect_unchanged();
 
@@ -339,7 +343,8 @@ TEST(Kinetic, BadInputIsRejectedAndChangesNothing) {
   EXPECT_EQ(r.status().code(), absl::StatusCode::kInvalidArgument);
   expect_unchanged();
 
-  r = t->ApplyDisplacements(DisplacementBatch::AbsoluteSparse({3}, {{1e40, 0}}));
+  r = t->ApplyDisplacements(
+      DisplacementBatch::AbsoluteSparse({3}, {{1e40, 0}}));
   EXPECT_EQ(r.status().code(), absl::StatusCode::kInvalidArgument);
   expect_unchanged();
 }

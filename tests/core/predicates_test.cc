@@ -20,8 +20,8 @@ int CgalOrient(const Vec2& a, const Vec2& b, const Vec2& c) {
 }
 int CgalInCircle(const Vec2& a, const Vec2& b, const Vec2& c, const Vec2& d) {
   // side_of_oriented_circle > 0: d inside for counter-clockwise a, b, c.
-  return static_cast<int>(CGAL::side_of_oriented_circle(
-      ToCgal(a), ToCgal(b), ToCgal(c), ToCgal(d)));
+  return static_cast<int>(CGAL::side_of_oriented_circle(ToCgal(a), ToCgal(b),
+                                                        ToCgal(c), ToCgal(d)));
 }
 int CgalCompareDistance(const Vec2& q, const Vec2& a, const Vec2& b) {
   return static_cast<int>(
@@ -43,8 +43,10 @@ class Gen {
   }
   // Moves v by a few ulps.
   Vec2 Nudge(Vec2 v) {
-    for (int k = Int(0, 3); k > 0; --k) v.x = std::nextafter(v.x, Int(0, 1) ? 1e300 : -1e300);
-    for (int k = Int(0, 3); k > 0; --k) v.y = std::nextafter(v.y, Int(0, 1) ? 1e300 : -1e300);
+    for (int k = Int(0, 3); k > 0; --k)
+      v.x = std::nextafter(v.x, Int(0, 1) ? 1e300 : -1e300);
+    for (int k = Int(0, 3); k > 0; --k)
+      v.y = std::nextafter(v.y, Int(0, 1) ? 1e300 : -1e300);
     return v;
   }
   std::mt19937_64& rng() { return rng_; }
@@ -56,9 +58,8 @@ class Gen {
 struct Scale {
   double scale, offset;
 };
-const Scale kScales[] = {{1.0, 0.0},     {1e-12, 0.0}, {1e12, 0.0},
-                         {1.0, 1e12},    {1e-3, 1e6},  {1e-9, 1.0},
-                         {1e20, -1e25}};
+const Scale kScales[] = {{1.0, 0.0},  {1e-12, 0.0}, {1e12, 0.0},  {1.0, 1e12},
+                         {1e-3, 1e6}, {1e-9, 1.0},  {1e20, -1e25}};
 
 TEST(Orient2d, MatchesCgalOnRandomAndNearDegenerate) {
   Gen g(1);
@@ -111,8 +112,10 @@ TEST(InCircle, MatchesCgalOnRandomAndNearDegenerate) {
         const double ax = b.x - a.x, ay = b.y - a.y, bx = c.x - a.x,
                      by = c.y - a.y;
         const double den = 2 * (ax * by - ay * bx);
-        const double ux = (by * (ax * ax + ay * ay) - ay * (bx * bx + by * by)) / den;
-        const double uy = (ax * (bx * bx + by * by) - bx * (ax * ax + ay * ay)) / den;
+        const double ux =
+            (by * (ax * ax + ay * ay) - ay * (bx * bx + by * by)) / den;
+        const double uy =
+            (ax * (bx * bx + by * by) - bx * (ax * ax + ay * ay)) / den;
         d = g.Nudge({a.x + 2 * ux, a.y + 2 * uy});
       }
       ASSERT_EQ(InCircle(a, b, c, d), CgalInCircle(a, b, c, d))
@@ -123,8 +126,8 @@ TEST(InCircle, MatchesCgalOnRandomAndNearDegenerate) {
 
 TEST(InCircle, ExactlyCocircularIsZeroAndSoSIsConsistent) {
   // Integer points on circles x^2 + y^2 = 25 and 65 (many lattice points).
-  const std::vector<Vec2> circle25 = {{5, 0}, {4, 3},  {3, 4},  {0, 5},
-                                      {-3, 4}, {-4, 3}, {-5, 0}, {-4, -3},
+  const std::vector<Vec2> circle25 = {{5, 0},   {4, 3},  {3, 4},  {0, 5},
+                                      {-3, 4},  {-4, 3}, {-5, 0}, {-4, -3},
                                       {-3, -4}, {0, -5}, {3, -4}, {4, -3}};
   Gen g(4);
   for (int i = 0; i < 5000; ++i) {

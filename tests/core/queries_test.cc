@@ -42,7 +42,8 @@ std::vector<Vec2> QueryPoints(const std::vector<Vec2>& pts, size_t m,
   }
   if (pts.empty()) lo = {0, 0}, hi = {1, 1};
   std::uniform_real_distribution<double> u(-0.2, 1.2);
-  std::uniform_int_distribution<size_t> pick(0, pts.empty() ? 0 : pts.size() - 1);
+  std::uniform_int_distribution<size_t> pick(0,
+                                             pts.empty() ? 0 : pts.size() - 1);
   std::vector<Vec2> q(m);
   for (size_t i = 0; i < m; ++i) {
     if (i % 3 == 0 && !pts.empty()) {
@@ -71,9 +72,9 @@ void CheckAllQueries(const std::vector<Vec2>& pts, uint64_t seed) {
     } else {
       ASSERT_EQ(row.size(), 1u);
       EXPECT_EQ(row[0], rank[0]) << "all-NN of " << i;
-      EXPECT_DOUBLE_EQ(all->distances[all->offsets[i]],
-                       std::hypot(pts[i].x - pts[rank[0]].x,
-                                  pts[i].y - pts[rank[0]].y));
+      EXPECT_DOUBLE_EQ(
+          all->distances[all->offsets[i]],
+          std::hypot(pts[i].x - pts[rank[0]].x, pts[i].y - pts[rank[0]].y));
     }
   }
   // k-NN of positions and of points.
@@ -101,7 +102,8 @@ void CheckAllQueries(const std::vector<Vec2>& pts, uint64_t seed) {
   // Fixed radius, including radii that hit points exactly.
   double typical = 0.0;
   for (size_t i = 1; i < std::min<size_t>(n, 50); ++i) {
-    typical = std::max(typical, std::hypot(pts[i].x - pts[0].x, pts[i].y - pts[0].y));
+    typical =
+        std::max(typical, std::hypot(pts[i].x - pts[0].x, pts[i].y - pts[0].y));
   }
   for (double r : {0.0, typical * 0.05, typical * 0.2, typical}) {
     for (uint32_t cap : {0u, 5u}) {
@@ -110,7 +112,8 @@ void CheckAllQueries(const std::vector<Vec2>& pts, uint64_t seed) {
       for (size_t i = 0; i < qs.size(); ++i) {
         std::vector<uint32_t> want;
         for (uint32_t id : BruteRank(pts, qs[i], kNoVertex)) {
-          if (CompareDistanceToRadius(qs[i], pts[id], r) <= 0) want.push_back(id);
+          if (CompareDistanceToRadius(qs[i], pts[id], r) <= 0)
+            want.push_back(id);
         }
         const bool cut = cap && want.size() > cap;
         if (cut) want.resize(cap);
@@ -134,9 +137,13 @@ void CheckAllQueries(const std::vector<Vec2>& pts, uint64_t seed) {
 }
 
 TEST(Queries, Uniform) { CheckAllQueries(testing::UniformPoints(2000, 1), 2); }
-TEST(Queries, Clustered) { CheckAllQueries(testing::ClusteredPoints(2000, 3), 4); }
+TEST(Queries, Clustered) {
+  CheckAllQueries(testing::ClusteredPoints(2000, 3), 4);
+}
 TEST(Queries, LatticeWithManyTies) { CheckAllQueries(testing::Lattice(30), 5); }
-TEST(Queries, Duplicates) { CheckAllQueries(testing::WithDuplicates(400, 3, 6), 7); }
+TEST(Queries, Duplicates) {
+  CheckAllQueries(testing::WithDuplicates(400, 3, 6), 7);
+}
 TEST(Queries, Collinear) { CheckAllQueries(testing::Collinear(300, 8), 9); }
 TEST(Queries, TinySets) {
   CheckAllQueries({}, 10);
@@ -197,8 +204,10 @@ TEST(Queries, BadArguments) {
   auto t = Triangulation::Create(testing::UniformPoints(100, 26));
   ASSERT_TRUE(t.ok());
   const std::vector<Vec2> q = {{0.5, 0.5}};
-  EXPECT_EQ(KNearest(*t, q, 0).status().code(), absl::StatusCode::kInvalidArgument);
-  EXPECT_EQ(KNearest(*t, q, -3).status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(KNearest(*t, q, 0).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(KNearest(*t, q, -3).status().code(),
+            absl::StatusCode::kInvalidArgument);
   EXPECT_EQ(WithinRadius(*t, q, -1.0, 0).status().code(),
             absl::StatusCode::kInvalidArgument);
   EXPECT_EQ(WithinRadius(*t, q, std::nan(""), 0).status().code(),

@@ -69,7 +69,8 @@ std::vector<Vec2> Collinear(size_t n, uint64_t seed) {
 std::vector<Vec2> WithDuplicates(size_t n, int copies, uint64_t seed) {
   std::vector<Vec2> base = UniformPoints(n, seed);
   std::vector<Vec2> out;
-  for (int c = 0; c < copies; ++c) out.insert(out.end(), base.begin(), base.end());
+  for (int c = 0; c < copies; ++c)
+    out.insert(out.end(), base.begin(), base.end());
   std::mt19937_64 rng(seed + 1);
   std::shuffle(out.begin(), out.end(), rng);
   return out;
