@@ -81,20 +81,6 @@ KINETRI_HD inline bool TriangleOk(const MeshView& m, const Vec2* pos,
   return Orient2d(pos[a], pos[b], pos[c]) > 0;
 }
 
-// True iff vertex v has the infinite vertex among its neighbours. `e` is any
-// half-edge leaving v. Gives up (returns true, the safe answer) after
-// max_degree steps.
-KINETRI_HD inline bool OnHull(const MeshView& m, uint32_t e,
-                              uint32_t max_degree = 1u << 16) {
-  uint32_t x = e;
-  for (uint32_t i = 0; i < max_degree; ++i) {
-    if (m.Dest(x) == kInfiniteVertex) return true;
-    x = m.twin[Prev(x)];
-    if (x == e) return false;
-  }
-  return true;
-}
-
 // True iff u and w are joined by an edge. `e` is any half-edge leaving u.
 KINETRI_HD inline bool Adjacent(const MeshView& m, uint32_t e, uint32_t w,
                                 uint32_t max_degree = 1u << 16) {
@@ -105,6 +91,11 @@ KINETRI_HD inline bool Adjacent(const MeshView& m, uint32_t e, uint32_t w,
     if (x == e) return false;
   }
   return true;
+}
+
+// True iff the origin of e is a hull vertex (joined to the infinite vertex).
+KINETRI_HD inline bool OnHull(const MeshView& m, uint32_t e) {
+  return Adjacent(m, e, kInfiniteVertex);
 }
 
 struct FixProposal {
