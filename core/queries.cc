@@ -239,7 +239,9 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
       [r, max_results](const TriangulationView& v, const Query& q,
                        uint32_t root, std::vector<Hit>& out) {
         if (CompareDistanceToRadius(q.q, v.pos[root], r) > 0) return false;
-        std::vector<uint32_t> found, stack{root};
+        thread_local std::vector<uint32_t> found, stack;
+        found.clear();
+        stack.assign(1, root);
         while (!stack.empty()) {
           const uint32_t u = stack.back();
           stack.pop_back();
@@ -247,7 +249,8 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
           v.ForEachNeighbor(u, [&](uint32_t w) {
             // parent(w) must come before w; this also keeps the root (the
             // first site, whose "parent" comes after it) from being revisited.
-            if (w != root && CompareDistanceToRadius(q.q, v.pos[w], r) <= 0 &&
+            if (w != root && CompareCloser(q.q, v.pos[u], v.pos[w]) < 0 &&
+                CompareDistanceToRadius(q.q, v.pos[w], r) <= 0 &&
                 FirstNeighbor(v, q.q, w, /*include_self=*/false) == u) {
               stack.push_back(w);
             }
