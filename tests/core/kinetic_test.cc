@@ -351,3 +351,42 @@ TEST(Kinetic, BadInputIsRejectedAndChangesNothing) {
 
 }  // namespace
 }  // namespace kinetri::core
+
+namespace kinetri::core {
+namespace {
+
+TEST(Kinetic, RenumberingKeepsIdsAndMesh) {
+  // Force a locality check after every step with a threshold that always
+  // triggers: the internal numbering is refreshed each step while callers'
+  // ids, positions and the Delaunay edges stay exact.
+  const size_t n = 2500;
+  TriangulationOptions opt;
+  opt.renumber_check_interval = 1;
+  opt.renumber_stretch = 0.0;
+  auto pts = testing::UniformPoints(n, 121);
+  pts.push_back(pts[5]);  // a coincident pair survives renumbering
+  auto t = Triangulation::Create(pts, opt);
+  ASSERT_TRUE(t.ok());
+  std::mt19937_64 rng(122);
+  std::normal_distribution<double> g(0.0, 0.05 / std::sqrt(double(n)));
+  for (int s = 0; s < 5; ++s) {
+    std::vector<Vec2> d(pts.size());
+    for (size_t i = 0; i < n; ++i) d[i] = {g(rng), g(rng)};
+    d[n] = d[5];  // the pair moves together
+    for (size_t i = 0; i < pts.size(); ++i) {
+      pts[i] = {pts[i].x + d[i].x, pts[i].y + d[i].y};
+    }
+    auto r = t->ApplyDisplacements(DisplacementBatch::Dense(d));
+    ASSERT_TRUE(r.ok()) << r.status();
+    EXPECT_TRUE(r->renumbered);
+    ASSERT_TRUE(t->Validate().ok()) << t->Validate();
+    for (uint32_t i = 0; i < pts.size(); ++i) {
+      ASSERT_EQ(t->Position(i), pts[i]) << "id " << i << " step " << s;
+    }
+    EXPECT_EQ(testing::EdgesAsPositions(*t),
+              testing::CgalDelaunayEdges(t->Positions()));
+  }
+}
+
+}  // namespace
+}  // namespace kinetri::core
