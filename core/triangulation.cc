@@ -780,10 +780,30 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
   return report;
 }
 
+uint32_t Triangulation::SiteId(uint32_t v) const {
+  uint32_t best = ext_of_int_[v];
+  for (uint32_t p = dup_next_[v]; p != kNoVertex; p = dup_next_[p]) {
+    best = std::min(best, ext_of_int_[p]);
+  }
+  return best;
+}
+
+std::vector<std::array<uint32_t, 3>> Triangulation::Triangles() const {
+  std::vector<std::array<uint32_t, 3>> out;
+  if (mesh_.empty()) return out;
+  const MeshView m = mesh_.view();
+  for (uint32_t t = 0; t < mesh_.num_triangles(); ++t) {
+    if (m.IsFree(t) || m.IsGhost(t)) continue;
+    out.push_back({SiteId(m.origin[3 * t]), SiteId(m.origin[3 * t + 1]),
+                   SiteId(m.origin[3 * t + 2])});
+  }
+  return out;
+}
+
 std::vector<std::pair<uint32_t, uint32_t>> Triangulation::Edges() const {
   std::vector<std::pair<uint32_t, uint32_t>> out;
   auto add = [&](uint32_t a, uint32_t b) {
-    uint32_t x = ext_of_int_[a], y = ext_of_int_[b];
+    uint32_t x = SiteId(a), y = SiteId(b);
     if (x > y) std::swap(x, y);
     out.emplace_back(x, y);
   };

@@ -25,6 +25,7 @@
 
 #include <tbb/task_arena.h>
 
+#include <array>
 #include <cstdint>
 #include <functional>
 #include <memory>
@@ -129,6 +130,10 @@ class Triangulation {
   // point), each pair ordered, the list sorted.
   std::vector<std::pair<uint32_t, uint32_t>> Edges() const;
 
+  // Finite Delaunay triangles, counter-clockwise, as external ids (each
+  // corner the smallest id of its coincident points). Empty in line mode.
+  std::vector<std::array<uint32_t, 3>> Triangles() const;
+
   // Read-only view for the query engine and executors.
   TriangulationView view() const;
 
@@ -157,6 +162,8 @@ class Triangulation {
   bool InsertBatch(std::vector<uint32_t> pending,
                    const std::vector<uint32_t>& hints, StepReport* report);
   double MeanEdgeSpan() const;
+  // Smallest external id among the points of the site of vertex v.
+  uint32_t SiteId(uint32_t v) const;
   void Renumber();
 
   TriangulationOptions options_;

@@ -1,0 +1,271 @@
+// C++ client for kinetri.v1.KinetriService: hides chunking, streaming and
+// CSR reassembly. Depends only on the generated proto/ code.
+#include "client/cpp/kinetri_client.h"
+
+#include <algorithm>
+
+#include "absl/strings/str_cat.h"
+
+namespace kinetri {
+
+absl::Status FromGrpc(const grpc::Status& s) {
+  if (s.ok()) return absl::OkStatus();
+  return absl::Status(static_cast<absl::StatusCode>(s.error_code()),
+                      s.error_message());
+}
+
+Client::Client(const std::string& target, size_t chunk_points)
+    : chunk_points_(std::max<size_t>(1, chunk_points)) {
+  grpc::ChannelArguments args;
+  args.SetMaxReceiveMessageSize(64 * 1024 * 1024);
+  channel_ = grpc::CreateCustomChannel(
+      target, grpc::InsecureChannelCredentials(), args);
+  stub_ = v1::KinetriService::NewStub(channel_);
+}
+
+absl::StatusOr<v1::Session> Client::CreateSession(
+    const std::vector<double>& xy, const v1::SessionOptions& options,
+    const std::string& session_id) {
+  if (xy.size() % 2) {
+    return absl::InvalidArgumentError("xy: odd number of coordinates");
+  }
+  grpc::ClientContext ctx;
+  v1::Session session;
+  auto writer = stub_->CreateSession(&ctx, &session);
+  v1::CreateSessionRequest head;
+  head.mutable_header()->set_session_id(session_id);
+  *head.mutable_header()->mutable_options() = options;
+  head.mutable_header()->set_point_count(xy.size() / 2);
+  bool ok = writer->Write(head);
+  const size_t step = 2 * chunk_points_;
+  for (size_t i = 0; ok && i < xy.size(); i += step) {
+    v1::CreateSessionRequest chunk;
+    const size_t end = std::min(xy.size(), i + step);
+    chunk.mutable_points()->mutable_xy()->Add(xy.begin() + i, xy.begin() + end);
+    ok = writer->Write(chunk);
+  }
+  writer->WritesDone();
+  const grpc::Status st = writer->Finish();
+  if (!st.ok()) return FromGrpc(st);
+  return session;
+}
+
+absl::StatusOr<v1::Session> Client::GetSession(const std::string& name) {
+  grpc::ClientContext ctx;
+  v1::GetSessionRequest req;
+  req.set_name(name);
+  v1::Session s;
+  const grpc::Status st = stub_->GetSession(&ctx, req, &s);
+  if (!st.ok()) return FromGrpc(st);
+  return s;
+}
+
+absl::StatusOr<std::vector<v1::Session>> Client::ListSessions() {
+  std::vector<v1::Session> out;
+  std::string token;
+  do {
+    grpc::ClientContext ctx;
+    v1::ListSessionsRequest req;
+    req.set_page_size(100);
+    req.set_page_token(token);
+    v1::ListSessionsResponse resp;
+    const grpc::Status st = stub_->ListSessions(&ctx, req, &resp);
+    if (!st.ok()) return FromGrpc(st);
+    for (auto& s : *resp.mutable_sessions()) out.push_back(std::move(s));
+    token = resp.next_page_token();
+  } while (!token.empty());
+  return out;
+}
+
+absl::Status Client::DeleteSession(const std::string& name) {
+  grpc::ClientContext ctx;
+  v1::DeleteSessionRequest req;
+  req.set_name(name);
+  google::protobuf::Empty empty;
+  return FromGrpc(stub_->DeleteSession(&ctx, req, &empty));
+}
+
+absl::StatusOr<std::unique_ptr<StepStream>> Client::OpenSteps(
+    const std::string& name) {
+  auto s = GetSession(name);
+  if (!s.ok()) return s.status();
+  return std::make_unique<StepStream>(stub_.get(), name, s->step() + 1,
+                                      2 * chunk_points_);
+}
+
+absl::StatusOr<Neighbors> Client::Query(const v1::QueryRequest& request) {
+  grpc::ClientContext ctx;
+  auto reader = stub_->Query(&ctx, request);
+  Neighbors out;
+  out.offsets.push_back(0);
+  v1::QueryResponse chunk;
+  while (reader->Read(&chunk)) {
+    out.step = chunk.step();
+    const uint64_t base = out.ids.size();
+    const uint64_t row0 = out.offsets.size() - 1;
+    for (int i = 1; i < chunk.offsets_size(); ++i) {
+      out.offsets.push_back(base + chunk.offsets(i));
+    }
+    out.ids.insert(out.ids.end(), chunk.ids().begin(), chunk.ids().end());
+    out.distances.insert(out.distances.end(), chunk.distances().begin(),
+                         chunk.distances().end());
+    for (uint32_t r : chunk.truncated_rows()) {
+      out.truncated_rows.push_back(row0 + r);
+    }
+  }
+  const grpc::Status st = reader->Finish();
+  if (!st.ok()) return FromGrpc(st);
+  return out;
+}
+
+namespace {
+v1::QueryRequest Base(const std::string& name, v1::QueryKind kind) {
+  v1::QueryRequest r;
+  r.set_session(name);
+  r.set_kind(kind);
+  r.set_include_distances(true);
+  return r;
+}
+}  // namespace
+
+absl::StatusOr<Neighbors> Client::NearestOfAll(const std::string& name) {
+  v1::QueryRequest r = Base(name, v1::QUERY_KIND_NEAREST);
+  r.mutable_all_points();
+  r.set_exclude_self(true);
+  return Query(r);
+}
+
+absl::StatusOr<Neighbors> Client::KNearest(const std::string& name,
+                                           const std::vector<double>& xy,
+                                           int k) {
+  v1::QueryRequest r = Base(name, v1::QUERY_KIND_K_NEAREST);
+  r.set_k(k);
+  r.mutable_positions()->mutable_xy()->Add(xy.begin(), xy.end());
+  return Query(r);
+}
+
+absl::StatusOr<Neighbors> Client::KNearestOfPoints(
+    const std::string& name, const std::vector<uint32_t>& ids, int k,
+    bool exclude_self) {
+  v1::QueryRequest r = Base(name, v1::QUERY_KIND_K_NEAREST);
+  r.set_k(k);
+  r.set_exclude_self(exclude_self);
+  r.mutable_point_ids()->mutable_ids()->Add(ids.begin(), ids.end());
+  return Query(r);
+}
+
+absl::StatusOr<Neighbors> Client::WithinRadius(const std::string& name,
+                                               const std::vector<double>& xy,
+                                               double radius,
+                                               uint32_t max_per_row) {
+  v1::QueryRequest r = Base(name, v1::QUERY_KIND_RADIUS);
+  r.set_radius(radius);
+  r.set_max_results_per_row(max_per_row);
+  r.mutable_positions()->mutable_xy()->Add(xy.begin(), xy.end());
+  return Query(r);
+}
+
+absl::StatusOr<Neighbors> Client::WithinRadiusOfPoints(
+    const std::string& name, const std::vector<uint32_t>& ids, double radius,
+    bool exclude_self, uint32_t max_per_row) {
+  v1::QueryRequest r = Base(name, v1::QUERY_KIND_RADIUS);
+  r.set_radius(radius);
+  r.set_exclude_self(exclude_self);
+  r.set_max_results_per_row(max_per_row);
+  r.mutable_point_ids()->mutable_ids()->Add(ids.begin(), ids.end());
+  return Query(r);
+}
+
+absl::StatusOr<Mesh> Client::Export(const std::string& name) {
+  grpc::ClientContext ctx;
+  v1::ExportTriangulationRequest req;
+  req.set_session(name);
+  auto reader = stub_->ExportTriangulation(&ctx, req);
+  Mesh mesh;
+  v1::ExportTriangulationResponse chunk;
+  while (reader->Read(&chunk)) {
+    mesh.step = chunk.step();
+    mesh.xy.insert(mesh.xy.end(), chunk.xy().begin(), chunk.xy().end());
+    mesh.triangles.insert(mesh.triangles.end(), chunk.triangles().begin(),
+                          chunk.triangles().end());
+  }
+  const grpc::Status st = reader->Finish();
+  if (!st.ok()) return FromGrpc(st);
+  return mesh;
+}
+
+StepStream::StepStream(v1::KinetriService::Stub* stub, std::string session,
+                       uint64_t first_step, size_t chunk_values)
+    : session_(std::move(session)),
+      next_step_(first_step),
+      chunk_values_(std::max<size_t>(2, chunk_values & ~size_t{1})) {
+  stream_ = stub->StreamSteps(&ctx_);
+}
+
+StepStream::~StepStream() {
+  if (!finished_) {
+    ctx_.TryCancel();
+    stream_->Finish().ok();
+  }
+}
+
+absl::StatusOr<v1::StepResponse> StepStream::MoveBy(
+    const std::vector<double>& dxy) {
+  return Send(v1::DISPLACEMENT_MODE_DELTA, {}, dxy);
+}
+
+absl::StatusOr<v1::StepResponse> StepStream::MoveBy(
+    const std::vector<uint32_t>& ids, const std::vector<double>& dxy) {
+  return Send(v1::DISPLACEMENT_MODE_DELTA, ids, dxy);
+}
+
+absl::StatusOr<v1::StepResponse> StepStream::MoveTo(
+    const std::vector<uint32_t>& ids, const std::vector<double>& xy) {
+  return Send(v1::DISPLACEMENT_MODE_ABSOLUTE, ids, xy);
+}
+
+absl::StatusOr<v1::StepResponse> StepStream::Send(
+    v1::DisplacementMode mode, const std::vector<uint32_t>& ids,
+    const std::vector<double>& xy) {
+  if (finished_) return absl::FailedPreconditionError("stream finished");
+  if (!ids.empty() && ids.size() * 2 != xy.size()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("xy: ", xy.size(), " values for ", ids.size(), " ids"));
+  }
+  size_t i = 0;
+  bool first = true;
+  do {
+    v1::StepRequest req;
+    if (first) req.set_session(session_);
+    first = false;
+    req.set_step(next_step_);
+    req.set_mode(mode);
+    const size_t end = std::min(xy.size(), i + chunk_values_);
+    req.mutable_xy()->Add(xy.begin() + i, xy.begin() + end);
+    if (!ids.empty()) {
+      req.mutable_ids()->Add(ids.begin() + i / 2, ids.begin() + end / 2);
+    }
+    req.set_end_of_step(end == xy.size());
+    i = end;
+    if (!stream_->Write(req)) break;
+  } while (i < xy.size());
+  v1::StepResponse resp;
+  if (!stream_->Read(&resp)) {
+    finished_ = true;
+    stream_->WritesDone();
+    const grpc::Status st = stream_->Finish();
+    return st.ok() ? absl::UnavailableError("step stream closed by the server")
+                   : FromGrpc(st);
+  }
+  ++next_step_;
+  return resp;
+}
+
+absl::Status StepStream::Finish() {
+  if (finished_) return absl::OkStatus();
+  finished_ = true;
+  stream_->WritesDone();
+  return FromGrpc(stream_->Finish());
+}
+
+}  // namespace kinetri

@@ -1,0 +1,114 @@
+// C++ client for kinetri.v1.KinetriService: hides chunking, streaming and
+// CSR reassembly. Depends only on the generated proto/ code.
+#ifndef KINETRI_CLIENT_CPP_KINETRI_CLIENT_H_
+#define KINETRI_CLIENT_CPP_KINETRI_CLIENT_H_
+
+#include <grpcpp/grpcpp.h>
+
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "kinetri/v1/kinetri.grpc.pb.h"
+
+namespace kinetri {
+
+// Results of a query: row i holds ids[offsets[i] .. offsets[i+1]).
+struct Neighbors {
+  uint64_t step = 0;  // the state that answered
+  std::vector<uint64_t> offsets;
+  std::vector<uint32_t> ids;
+  std::vector<double> distances;  // empty unless requested
+  std::vector<uint64_t> truncated_rows;
+  size_t rows() const { return offsets.empty() ? 0 : offsets.size() - 1; }
+};
+
+struct Mesh {
+  uint64_t step = 0;
+  std::vector<double> xy;           // interleaved positions, by id
+  std::vector<uint32_t> triangles;  // id triples, counter-clockwise
+};
+
+// Sends one batch per simulation step on a long-lived stream.
+class StepStream {
+ public:
+  StepStream(v1::KinetriService::Stub* stub, std::string session,
+             uint64_t first_step, size_t chunk_values);
+  ~StepStream();
+
+  // Dense displacements (one x, y pair per point, in id order).
+  absl::StatusOr<v1::StepResponse> MoveBy(const std::vector<double>& dxy);
+  // Sparse displacements.
+  absl::StatusOr<v1::StepResponse> MoveBy(const std::vector<uint32_t>& ids,
+                                          const std::vector<double>& dxy);
+  // Absolute positions (dense if ids is empty).
+  absl::StatusOr<v1::StepResponse> MoveTo(const std::vector<uint32_t>& ids,
+                                          const std::vector<double>& xy);
+  // Half-closes the stream and returns its final status.
+  absl::Status Finish();
+  uint64_t next_step() const { return next_step_; }
+
+ private:
+  absl::StatusOr<v1::StepResponse> Send(v1::DisplacementMode mode,
+                                        const std::vector<uint32_t>& ids,
+                                        const std::vector<double>& xy);
+  grpc::ClientContext ctx_;
+  std::unique_ptr<grpc::ClientReaderWriter<v1::StepRequest, v1::StepResponse>>
+      stream_;
+  std::string session_;
+  uint64_t next_step_;
+  size_t chunk_values_;
+  bool finished_ = false;
+};
+
+class Client {
+ public:
+  // target: "host:port". Points per message chunk: 1/4 of the 4 MiB limit.
+  explicit Client(const std::string& target, size_t chunk_points = 131072);
+
+  absl::StatusOr<v1::Session> CreateSession(const std::vector<double>& xy,
+                                            const v1::SessionOptions& options,
+                                            const std::string& session_id = "");
+  absl::StatusOr<v1::Session> GetSession(const std::string& name);
+  absl::StatusOr<std::vector<v1::Session>> ListSessions();
+  absl::Status DeleteSession(const std::string& name);
+
+  // Opens a step stream that continues after the session's current step.
+  absl::StatusOr<std::unique_ptr<StepStream>> OpenSteps(
+      const std::string& name);
+
+  // Runs a query (its targets and options set by the caller) and collects
+  // every chunk.
+  absl::StatusOr<Neighbors> Query(const v1::QueryRequest& request);
+  absl::StatusOr<Neighbors> NearestOfAll(const std::string& name);
+  absl::StatusOr<Neighbors> KNearest(const std::string& name,
+                                     const std::vector<double>& xy, int k);
+  absl::StatusOr<Neighbors> KNearestOfPoints(const std::string& name,
+                                             const std::vector<uint32_t>& ids,
+                                             int k, bool exclude_self);
+  absl::StatusOr<Neighbors> WithinRadius(const std::string& name,
+                                         const std::vector<double>& xy,
+                                         double r, uint32_t max_per_row = 0);
+  absl::StatusOr<Neighbors> WithinRadiusOfPoints(
+      const std::string& name, const std::vector<uint32_t>& ids, double r,
+      bool exclude_self, uint32_t max_per_row = 0);
+
+  absl::StatusOr<Mesh> Export(const std::string& name);
+
+  v1::KinetriService::Stub* stub() { return stub_.get(); }
+
+ private:
+  std::shared_ptr<grpc::Channel> channel_;
+  std::unique_ptr<v1::KinetriService::Stub> stub_;
+  size_t chunk_points_;
+};
+
+// grpc::Status -> absl::Status (same code and message).
+absl::Status FromGrpc(const grpc::Status& s);
+
+}  // namespace kinetri
+
+#endif  // KINETRI_CLIENT_CPP_KINETRI_CLIENT_H_

@@ -1,0 +1,124 @@
+// The one place where protobuf messages and core types are converted.
+#include "server/convert.h"
+
+#include "absl/strings/str_cat.h"
+
+namespace kinetri::server {
+
+absl::Status AppendPoints(const google::protobuf::RepeatedField<double>& xy,
+                          const std::string& field,
+                          std::vector<core::Vec2>* out) {
+  if (xy.size() % 2 != 0) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        field, ": ", xy.size(), " coordinates is odd (expected x, y pairs)"));
+  }
+  out->reserve(out->size() + xy.size() / 2);
+  for (int i = 0; i < xy.size(); i += 2) out->push_back({xy[i], xy[i + 1]});
+  return absl::OkStatus();
+}
+
+absl::Status StepAssembler::Add(const v1::StepRequest& chunk) {
+  const v1::DisplacementMode mode =
+      chunk.mode() == v1::DISPLACEMENT_MODE_UNSPECIFIED
+          ? v1::DISPLACEMENT_MODE_DELTA
+          : chunk.mode();
+  const bool sparse = chunk.ids_size() > 0;
+  if (chunks_ == 0) {
+    step_ = chunk.step();
+    mode_ = mode;
+    sparse_ = sparse;
+  } else {
+    if (chunk.step() != step_) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("step: chunk of step ", chunk.step(), " inside step ",
+                       step_, " (send end_of_step on the last chunk)"));
+    }
+    if (mode != mode_) {
+      return absl::InvalidArgumentError("mode: changes within one step");
+    }
+    if (sparse != sparse_ && chunk.xy_size() > 0) {
+      return absl::InvalidArgumentError(
+          "ids: a step is either dense (no ids) or sparse (ids in every "
+          "chunk)");
+    }
+  }
+  const size_t before = values_.size();
+  absl::Status s = AppendPoints(chunk.xy(), "xy", &values_);
+  if (!s.ok()) return s;
+  if (sparse_) {
+    if (static_cast<size_t>(chunk.ids_size()) != values_.size() - before) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("ids: ", chunk.ids_size(), " ids for ",
+                       values_.size() - before, " xy pairs in a chunk"));
+    }
+    ids_.insert(ids_.end(), chunk.ids().begin(), chunk.ids().end());
+  }
+  ++chunks_;
+  return absl::OkStatus();
+}
+
+core::DisplacementBatch StepAssembler::Take() {
+  core::DisplacementBatch b;
+  b.mode = mode_ == v1::DISPLACEMENT_MODE_ABSOLUTE
+               ? core::DisplacementBatch::Mode::kAbsolute
+               : core::DisplacementBatch::Mode::kDelta;
+  b.ids = std::move(ids_);
+  b.values = std::move(values_);
+  ids_.clear();
+  values_.clear();
+  chunks_ = 0;
+  return b;
+}
+
+v1::StepStats ToProto(const core::StepReport& r) {
+  v1::StepStats s;
+  s.set_path(core::UpdatePathName(r.path));
+  s.set_moved_points(r.moved_points);
+  s.set_substeps(r.substeps);
+  s.set_reinserted(r.reinserted);
+  s.set_interior_fix_flips(r.flips.interior_fix);
+  s.set_hull_absorb_flips(r.flips.hull_absorb);
+  s.set_hull_release_flips(r.flips.hull_release);
+  s.set_delaunay_flips(r.flips.delaunay);
+  s.set_fallback_reason(r.fallback_reason);
+  s.set_update_seconds(r.seconds);
+  return s;
+}
+
+std::vector<v1::QueryResponse> ToChunks(const core::NeighborLists& lists,
+                                        uint64_t step, bool distances,
+                                        uint32_t rows_per_chunk) {
+  const uint64_t rows = lists.num_queries();
+  std::vector<v1::QueryResponse> out;
+  if (rows_per_chunk == 0) rows_per_chunk = 1;
+  for (uint64_t first = 0; first < rows || (rows == 0 && out.empty());
+       first += rows_per_chunk) {
+    v1::QueryResponse r;
+    r.set_step(step);
+    r.set_first_row(first);
+    r.set_total_rows(rows);
+    const uint64_t last = std::min<uint64_t>(rows, first + rows_per_chunk);
+    if (rows > 0) {
+      const uint64_t base = lists.offsets[first];
+      for (uint64_t i = first; i <= last; ++i) {
+        r.add_offsets(lists.offsets[i] - base);
+      }
+      const uint64_t end = lists.offsets[last];
+      r.mutable_ids()->Add(lists.ids.begin() + base, lists.ids.begin() + end);
+      if (distances) {
+        r.mutable_distances()->Add(lists.distances.begin() + base,
+                                   lists.distances.begin() + end);
+      }
+      for (uint64_t i = first; i < last; ++i) {
+        if (lists.truncated[i]) r.add_truncated_rows(i - first);
+      }
+    } else {
+      r.add_offsets(0);
+    }
+    out.push_back(std::move(r));
+    if (rows == 0) break;
+  }
+  return out;
+}
+
+}  // namespace kinetri::server

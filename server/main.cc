@@ -1,0 +1,105 @@
+// kinetri-server: serves kinetic Delaunay sessions over gRPC.
+#include <grpcpp/ext/proto_server_reflection_plugin.h>
+#include <grpcpp/grpcpp.h>
+#include <grpcpp/health_check_service_interface.h>
+
+#include <atomic>
+#include <chrono>
+#include <csignal>
+#include <cstdio>
+#include <memory>
+#include <string>
+#include <thread>
+
+#include "absl/flags/flag.h"
+#include "absl/flags/parse.h"
+#include "absl/flags/usage.h"
+#include "server/metrics.h"
+#include "server/service.h"
+#include "server/session_registry.h"
+
+ABSL_FLAG(std::string, listen, "127.0.0.1:50051",
+          "gRPC listen address host:port (port 0 picks a free port; use "
+          "0.0.0.0:50051 to serve other hosts)");
+ABSL_FLAG(std::string, metrics_listen, "127.0.0.1:9464",
+          "Prometheus /metrics address host:port (port 0: a free port; empty: "
+          "no metrics endpoint)");
+ABSL_FLAG(uint32_t, max_sessions, 64, "most sessions held at once");
+ABSL_FLAG(uint64_t, max_points, 50000000, "most points in one session");
+ABSL_FLAG(uint64_t, max_query_results, 200000000,
+          "most result ids one query may return");
+ABSL_FLAG(int, max_message_mb, 4,
+          "largest gRPC message accepted, MiB (clients chunk to fit)");
+ABSL_FLAG(int, threads, 0,
+          "worker threads per session on the CPU backend (0: all cores)");
+ABSL_FLAG(int, shutdown_grace_seconds, 10,
+          "on SIGTERM/SIGINT: how long running calls may finish");
+
+namespace {
+std::atomic<bool> g_stop{false};
+void OnSignal(int) { g_stop = true; }
+}  // namespace
+
+int main(int argc, char** argv) {
+  absl::SetProgramUsageMessage(
+      "Serves Kinetri sessions (kinetic Delaunay triangulations of moving 2D "
+      "points) over gRPC (kinetri.v1.KinetriService), with the gRPC health "
+      "service, server reflection and Prometheus metrics. Defaults serve on "
+      "loopback out of the box.");
+  absl::ParseCommandLine(argc, argv);
+
+  kinetri::server::ServerLimits limits;
+  limits.max_sessions = absl::GetFlag(FLAGS_max_sessions);
+  limits.max_points_per_session = absl::GetFlag(FLAGS_max_points);
+  limits.max_query_results = absl::GetFlag(FLAGS_max_query_results);
+  limits.default_threads = absl::GetFlag(FLAGS_threads);
+  kinetri::server::SessionRegistry registry(limits);
+  kinetri::server::Metrics metrics;
+  const std::string metrics_addr = absl::GetFlag(FLAGS_metrics_listen);
+  if (!metrics_addr.empty()) {
+    const int port = metrics.Expose(metrics_addr);
+    if (port < 0) {
+      std::fprintf(stderr, "kinetri-server: cannot serve metrics on %s\n",
+                   metrics_addr.c_str());
+      return 1;
+    }
+    std::printf("kinetri-server: metrics on http://%s/metrics (port %d)\n",
+                metrics_addr.c_str(), port);
+  }
+
+  kinetri::server::KinetriServiceImpl service(&registry, &metrics);
+  grpc::EnableDefaultHealthCheckService(true);
+  grpc::reflection::InitProtoReflectionServerBuilderPlugin();
+  grpc::ServerBuilder builder;
+  int port = 0;
+  builder.AddListeningPort(absl::GetFlag(FLAGS_listen),
+                           grpc::InsecureServerCredentials(), &port);
+  const int max_bytes = absl::GetFlag(FLAGS_max_message_mb) * 1024 * 1024;
+  builder.SetMaxReceiveMessageSize(max_bytes);
+  builder.SetMaxSendMessageSize(max_bytes);
+  builder.RegisterService(&service);
+  std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
+  if (!server || port == 0) {
+    std::fprintf(stderr, "kinetri-server: cannot listen on %s\n",
+                 absl::GetFlag(FLAGS_listen).c_str());
+    return 1;
+  }
+  server->GetHealthCheckService()->SetServingStatus(true);
+  std::printf("kinetri-server: listening on port %d (%s)\n", port,
+              absl::GetFlag(FLAGS_listen).c_str());
+  std::fflush(stdout);
+
+  std::signal(SIGTERM, OnSignal);
+  std::signal(SIGINT, OnSignal);
+  while (!g_stop) std::this_thread::sleep_for(std::chrono::milliseconds(50));
+
+  std::printf("kinetri-server: draining\n");
+  std::fflush(stdout);
+  server->GetHealthCheckService()->SetServingStatus(false);
+  server->Shutdown(
+      std::chrono::system_clock::now() +
+      std::chrono::seconds(absl::GetFlag(FLAGS_shutdown_grace_seconds)));
+  server->Wait();
+  std::printf("kinetri-server: stopped\n");
+  return 0;
+}

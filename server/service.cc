@@ -1,0 +1,431 @@
+// gRPC implementation of kinetri.v1.KinetriService over the core.
+#include "server/service.h"
+
+#include <chrono>
+#include <mutex>
+#include <shared_mutex>
+
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
+#include "core/queries.h"
+#include "server/convert.h"
+
+namespace kinetri::server {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+grpc::Status ToGrpc(const absl::Status& s) {
+  if (s.ok()) return grpc::Status::OK;
+  return grpc::Status(static_cast<grpc::StatusCode>(s.code()),
+                      std::string(s.message()));
+}
+
+const char* CodeName(grpc::StatusCode c) {
+  static const char* kNames[] = {"OK",
+                                 "CANCELLED",
+                                 "UNKNOWN",
+                                 "INVALID_ARGUMENT",
+                                 "DEADLINE_EXCEEDED",
+                                 "NOT_FOUND",
+                                 "ALREADY_EXISTS",
+                                 "PERMISSION_DENIED",
+                                 "RESOURCE_EXHAUSTED",
+                                 "FAILED_PRECONDITION",
+                                 "ABORTED",
+                                 "OUT_OF_RANGE",
+                                 "UNIMPLEMENTED",
+                                 "INTERNAL",
+                                 "UNAVAILABLE",
+                                 "DATA_LOSS",
+                                 "UNAUTHENTICATED"};
+  const int i = static_cast<int>(c);
+  return (i >= 0 && i <= 16) ? kNames[i] : "UNKNOWN";
+}
+
+// Records grpc_server_* metrics for one RPC.
+class RpcScope {
+ public:
+  RpcScope(Metrics* m, const char* method, const char* type)
+      : m_(m), method_(method), type_(type), start_(Clock::now()) {
+    m_->RpcStarted(method_, type_);
+  }
+  grpc::Status Done(grpc::Status s) {
+    m_->RpcHandled(
+        method_, type_, CodeName(s.error_code()),
+        std::chrono::duration<double>(Clock::now() - start_).count());
+    return s;
+  }
+
+ private:
+  Metrics* m_;
+  const char* method_;
+  const char* type_;
+  Clock::time_point start_;
+};
+
+google::protobuf::Timestamp ToTimestamp(absl::Time t) {
+  google::protobuf::Timestamp ts;
+  const int64_t ns = absl::ToUnixNanos(t);
+  ts.set_seconds(ns / 1000000000);
+  ts.set_nanos(static_cast<int32_t>(ns % 1000000000));
+  return ts;
+}
+
+// Caller holds the session lock (shared or exclusive).
+v1::Session Describe(Session& s) {
+  v1::Session out;
+  out.set_name(s.name());
+  out.set_backend(s.backend());
+  out.set_point_count(s.point_count());
+  out.set_site_count(s.tri().num_sites());
+  out.set_step(s.step());
+  out.mutable_options()->set_backend(s.backend() == "cuda" ? v1::BACKEND_CUDA
+                                                           : v1::BACKEND_CPU);
+  out.mutable_options()->set_threads(s.threads());
+  out.mutable_options()->set_max_query_results(s.max_query_results());
+  *out.mutable_create_time() = ToTimestamp(s.create_time());
+  *out.mutable_update_time() = ToTimestamp(s.update_time());
+  return out;
+}
+
+}  // namespace
+
+void KinetriServiceImpl::UpdateGauges() {
+  metrics_->SetSessions(static_cast<double>(registry_->size()),
+                        static_cast<double>(registry_->total_points()));
+}
+
+grpc::Status KinetriServiceImpl::CreateSession(
+    grpc::ServerContext* ctx,
+    grpc::ServerReader<v1::CreateSessionRequest>* reader,
+    v1::Session* response) {
+  RpcScope rpc(metrics_, "CreateSession", "client_stream");
+  v1::CreateSessionRequest msg;
+  if (!reader->Read(&msg) || !msg.has_header()) {
+    return rpc.Done(grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                                 "header: the first message must carry the "
+                                 "session header"));
+  }
+  const v1::CreateSessionHeader header = msg.header();
+  absl::Status st = registry_->CheckCapacity(header.point_count());
+  if (!st.ok()) return rpc.Done(ToGrpc(st));
+  std::string id = header.session_id();
+  if (id.empty()) {
+    id = registry_->NewId();
+  } else if (!ValidSessionId(id)) {
+    return rpc.Done(
+        grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                     absl::StrCat("header.session_id: \"", id,
+                                  "\" must match [a-z0-9-]{1,63}")));
+  }
+  if (header.options().backend() == v1::BACKEND_CUDA) {
+    return rpc.Done(grpc::Status(
+        grpc::StatusCode::FAILED_PRECONDITION,
+        "header.options.backend: this server has no CUDA backend (built "
+        "without it or no GPU present); use BACKEND_AUTO or BACKEND_CPU"));
+  }
+  std::vector<core::Vec2> points;
+  points.reserve(header.point_count());
+  uint64_t chunk = 0;
+  while (reader->Read(&msg)) {
+    if (ctx->IsCancelled()) {
+      return rpc.Done(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled"));
+    }
+    if (!msg.has_points()) {
+      return rpc.Done(
+          grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                       absl::StrCat("points: message ", chunk + 1,
+                                    " after the header carries no points")));
+    }
+    st = AppendPoints(msg.points().xy(), absl::StrCat("points[", chunk, "].xy"),
+                      &points);
+    if (!st.ok()) return rpc.Done(ToGrpc(st));
+    if (points.size() > header.point_count()) {
+      return rpc.Done(
+          grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                       absl::StrCat("points: more than header.point_count = ",
+                                    header.point_count(), " points sent")));
+    }
+    ++chunk;
+  }
+  if (points.size() != header.point_count()) {
+    return rpc.Done(grpc::Status(
+        grpc::StatusCode::INVALID_ARGUMENT,
+        absl::StrCat("points: ", points.size(), " points sent, header says ",
+                     header.point_count())));
+  }
+  core::TriangulationOptions opt;
+  const uint32_t threads = header.options().threads()
+                               ? header.options().threads()
+                               : registry_->limits().default_threads;
+  opt.num_threads = static_cast<int>(threads);
+  auto tri = core::Triangulation::Create(points, opt);
+  if (!tri.ok()) return rpc.Done(ToGrpc(tri.status()));
+  const uint64_t max_results =
+      header.options().max_query_results()
+          ? std::min(header.options().max_query_results(),
+                     registry_->limits().max_query_results)
+          : registry_->limits().max_query_results;
+  auto session = std::make_shared<Session>(id, std::move(*tri), "cpu",
+                                           max_results, threads);
+  auto added = registry_->Add(session);
+  if (!added.ok()) return rpc.Done(ToGrpc(added.status()));
+  {
+    std::shared_lock lock((*added)->mutex());
+    *response = Describe(**added);
+  }
+  UpdateGauges();
+  return rpc.Done(grpc::Status::OK);
+}
+
+grpc::Status KinetriServiceImpl::GetSession(grpc::ServerContext*,
+                                            const v1::GetSessionRequest* req,
+                                            v1::Session* response) {
+  RpcScope rpc(metrics_, "GetSession", "unary");
+  auto s = registry_->Get(req->name());
+  if (!s.ok()) return rpc.Done(ToGrpc(s.status()));
+  std::shared_lock lock((*s)->mutex());
+  *response = Describe(**s);
+  return rpc.Done(grpc::Status::OK);
+}
+
+grpc::Status KinetriServiceImpl::ListSessions(
+    grpc::ServerContext*, const v1::ListSessionsRequest* req,
+    v1::ListSessionsResponse* response) {
+  RpcScope rpc(metrics_, "ListSessions", "unary");
+  if (req->page_size() < 0) {
+    return rpc.Done(grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                                 "page_size: must be >= 0"));
+  }
+  const size_t page =
+      req->page_size() == 0 ? 50 : std::min<size_t>(req->page_size(), 1000);
+  std::string after;
+  if (!req->page_token().empty()) {
+    auto id = ParseSessionName(req->page_token(), "page_token");
+    if (!id.ok()) return rpc.Done(ToGrpc(id.status()));
+    after = *id;
+  }
+  auto list = registry_->List(after, page + 1);
+  for (size_t i = 0; i < list.size() && i < page; ++i) {
+    std::shared_lock lock(list[i]->mutex());
+    *response->add_sessions() = Describe(*list[i]);
+  }
+  if (list.size() > page) {
+    response->set_next_page_token(list[page - 1]->name());
+  }
+  return rpc.Done(grpc::Status::OK);
+}
+
+grpc::Status KinetriServiceImpl::DeleteSession(
+    grpc::ServerContext*, const v1::DeleteSessionRequest* req,
+    google::protobuf::Empty*) {
+  RpcScope rpc(metrics_, "DeleteSession", "unary");
+  const absl::Status st = registry_->Remove(req->name());
+  UpdateGauges();
+  return rpc.Done(ToGrpc(st));
+}
+
+grpc::Status KinetriServiceImpl::StreamSteps(
+    grpc::ServerContext* ctx,
+    grpc::ServerReaderWriter<v1::StepResponse, v1::StepRequest>* stream) {
+  RpcScope rpc(metrics_, "StreamSteps", "bidi_stream");
+  std::shared_ptr<Session> session;
+  StepAssembler assembler;
+  v1::StepRequest req;
+  while (stream->Read(&req)) {
+    if (ctx->IsCancelled()) {
+      return rpc.Done(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled"));
+    }
+    if (!session) {
+      if (req.session().empty()) {
+        return rpc.Done(grpc::Status(
+            grpc::StatusCode::INVALID_ARGUMENT,
+            "session: required on the first message of the stream"));
+      }
+      auto s = registry_->Get(req.session());
+      if (!s.ok()) return rpc.Done(ToGrpc(s.status()));
+      session = *s;
+    } else if (!req.session().empty() && req.session() != session->name()) {
+      return rpc.Done(grpc::Status(
+          grpc::StatusCode::INVALID_ARGUMENT,
+          absl::StrCat("session: \"", req.session(), "\" differs from ",
+                       session->name(), " used earlier on this stream")));
+    }
+    absl::Status st = assembler.Add(req);
+    if (!st.ok()) return rpc.Done(ToGrpc(st));
+    if (!req.end_of_step()) continue;
+    const uint64_t step = assembler.step();
+    core::DisplacementBatch batch = assembler.Take();
+    v1::StepResponse resp;
+    {
+      std::unique_lock lock(session->mutex());
+      if (step != session->step() + 1) {
+        return rpc.Done(grpc::Status(
+            grpc::StatusCode::FAILED_PRECONDITION,
+            absl::StrCat("step: got ", step, ", expected ", session->step() + 1,
+                         " (steps apply in order)")));
+      }
+      auto report = session->tri().ApplyDisplacements(batch);
+      if (!report.ok()) return rpc.Done(ToGrpc(report.status()));
+      session->set_step(step);
+      metrics_->ObserveStep(session->backend(), *report);
+      resp.set_step(step);
+      *resp.mutable_stats() = ToProto(*report);
+    }
+    if (!stream->Write(resp)) break;  // client went away; step is applied
+  }
+  if (!assembler.empty()) {
+    // The stream ended inside a step: it was never applied.
+    return rpc.Done(grpc::Status(
+        grpc::StatusCode::INVALID_ARGUMENT,
+        absl::StrCat("step ", assembler.step(),
+                     ": stream ended before end_of_step; not applied")));
+  }
+  return rpc.Done(grpc::Status::OK);
+}
+
+grpc::Status KinetriServiceImpl::Query(
+    grpc::ServerContext* ctx, const v1::QueryRequest* req,
+    grpc::ServerWriter<v1::QueryResponse>* writer) {
+  RpcScope rpc(metrics_, "Query", "server_stream");
+  auto s = registry_->Get(req->session());
+  if (!s.ok()) return rpc.Done(ToGrpc(s.status()));
+  Session& session = **s;
+  std::string op;
+  switch (req->kind()) {
+    case v1::QUERY_KIND_NEAREST:
+      op = "nearest";
+      break;
+    case v1::QUERY_KIND_K_NEAREST:
+      op = "k_nearest";
+      if (req->k() <= 0) {
+        return rpc.Done(
+            grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                         absl::StrCat("k: ", req->k(), " must be > 0")));
+      }
+      break;
+    case v1::QUERY_KIND_RADIUS:
+      op = "radius";
+      break;
+    default:
+      return rpc.Done(
+          grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                       "kind: must be NEAREST, K_NEAREST or RADIUS"));
+  }
+  std::vector<core::Vec2> positions;
+  if (req->has_positions()) {
+    absl::Status st =
+        AppendPoints(req->positions().xy(), "positions.xy", &positions);
+    if (!st.ok()) return rpc.Done(ToGrpc(st));
+  } else if (!req->has_point_ids() && !req->has_all_points()) {
+    return rpc.Done(
+        grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                     "targets: set one of point_ids, positions, all_points"));
+  }
+  core::QueryLimits limits;
+  limits.max_total_results = session.max_query_results();
+  const auto start = Clock::now();
+  absl::StatusOr<core::NeighborLists> result;
+  uint64_t step = 0;
+  {
+    std::shared_lock lock(session.mutex());
+    step = session.step();
+    const core::Triangulation& t = session.tri();
+    std::vector<uint32_t> ids;
+    if (req->has_all_points()) {
+      ids.resize(t.size());
+      for (uint32_t i = 0; i < t.size(); ++i) ids[i] = i;
+    } else if (req->has_point_ids()) {
+      ids.assign(req->point_ids().ids().begin(), req->point_ids().ids().end());
+    }
+    const bool by_id = !req->has_positions();
+    const int k = req->kind() == v1::QUERY_KIND_K_NEAREST ? req->k() : 1;
+    if (req->kind() == v1::QUERY_KIND_RADIUS) {
+      result = by_id ? core::WithinRadiusOfPoints(
+                           t, ids, req->radius(), req->exclude_self(),
+                           req->max_results_per_row(), limits)
+                     : core::WithinRadius(t, positions, req->radius(),
+                                          req->max_results_per_row(), limits);
+    } else if (by_id && req->has_all_points() && k == 1 &&
+               req->exclude_self()) {
+      result = core::AllNearestNeighbors(t);
+    } else {
+      if (static_cast<uint64_t>(k) * (by_id ? ids.size() : positions.size()) >
+          limits.max_total_results) {
+        return rpc.Done(
+            grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
+                         absl::StrCat("k: ", k, " results for each of ",
+                                      by_id ? ids.size() : positions.size(),
+                                      " queries exceed the limit of ",
+                                      limits.max_total_results)));
+      }
+      result =
+          by_id ? core::KNearestOfPoints(t, ids, k, req->exclude_self(), limits)
+                : core::KNearest(t, positions, k, limits);
+    }
+  }
+  if (!result.ok()) {
+    absl::Status st = result.status();
+    if (st.code() == absl::StatusCode::kNotFound && req->has_point_ids()) {
+      st = absl::NotFoundError(absl::StrCat("point_ids.", st.message()));
+    }
+    return rpc.Done(ToGrpc(st));
+  }
+  metrics_->ObserveQuery(
+      op, session.backend(),
+      std::chrono::duration<double>(Clock::now() - start).count());
+  const uint32_t rows_per_chunk =
+      req->rows_per_chunk() ? req->rows_per_chunk() : 16384;
+  for (auto& chunk :
+       ToChunks(*result, step, req->include_distances(), rows_per_chunk)) {
+    if (ctx->IsCancelled()) {
+      return rpc.Done(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled"));
+    }
+    if (!writer->Write(chunk)) break;
+  }
+  return rpc.Done(grpc::Status::OK);
+}
+
+grpc::Status KinetriServiceImpl::ExportTriangulation(
+    grpc::ServerContext* ctx, const v1::ExportTriangulationRequest* req,
+    grpc::ServerWriter<v1::ExportTriangulationResponse>* writer) {
+  RpcScope rpc(metrics_, "ExportTriangulation", "server_stream");
+  auto s = registry_->Get(req->session());
+  if (!s.ok()) return rpc.Done(ToGrpc(s.status()));
+  std::vector<core::Vec2> pos;
+  std::vector<std::array<uint32_t, 3>> tris;
+  uint64_t step = 0;
+  {
+    std::shared_lock lock((*s)->mutex());
+    step = (*s)->step();
+    pos = (*s)->tri().Positions();
+    tris = (*s)->tri().Triangles();
+  }
+  const size_t per =
+      req->triangles_per_chunk() ? req->triangles_per_chunk() : 100000;
+  size_t p = 0, t = 0;
+  do {
+    if (ctx->IsCancelled()) {
+      return rpc.Done(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled"));
+    }
+    v1::ExportTriangulationResponse r;
+    r.set_step(step);
+    r.set_first_point(p);
+    r.set_total_points(pos.size());
+    r.set_total_triangles(tris.size());
+    const size_t pend = std::min(pos.size(), p + per);
+    for (; p < pend; ++p) {
+      r.add_xy(pos[p].x);
+      r.add_xy(pos[p].y);
+    }
+    const size_t tend = std::min(tris.size(), t + per);
+    for (; t < tend; ++t) {
+      for (uint32_t v : tris[t]) r.add_triangles(v);
+    }
+    if (!writer->Write(r)) break;
+  } while (p < pos.size() || t < tris.size());
+  return rpc.Done(grpc::Status::OK);
+}
+
+}  // namespace kinetri::server

@@ -1,0 +1,51 @@
+// gRPC implementation of kinetri.v1.KinetriService over the core.
+#ifndef KINETRI_SERVER_SERVICE_H_
+#define KINETRI_SERVER_SERVICE_H_
+
+#include <atomic>
+#include <string>
+
+#include "kinetri/v1/kinetri.grpc.pb.h"
+#include "server/metrics.h"
+#include "server/session_registry.h"
+
+namespace kinetri::server {
+
+class KinetriServiceImpl final : public v1::KinetriService::Service {
+ public:
+  KinetriServiceImpl(SessionRegistry* registry, Metrics* metrics)
+      : registry_(registry), metrics_(metrics) {}
+
+  grpc::Status CreateSession(
+      grpc::ServerContext* ctx,
+      grpc::ServerReader<v1::CreateSessionRequest>* reader,
+      v1::Session* response) override;
+  grpc::Status GetSession(grpc::ServerContext* ctx,
+                          const v1::GetSessionRequest* request,
+                          v1::Session* response) override;
+  grpc::Status ListSessions(grpc::ServerContext* ctx,
+                            const v1::ListSessionsRequest* request,
+                            v1::ListSessionsResponse* response) override;
+  grpc::Status DeleteSession(grpc::ServerContext* ctx,
+                             const v1::DeleteSessionRequest* request,
+                             google::protobuf::Empty* response) override;
+  grpc::Status StreamSteps(
+      grpc::ServerContext* ctx,
+      grpc::ServerReaderWriter<v1::StepResponse, v1::StepRequest>* stream)
+      override;
+  grpc::Status Query(grpc::ServerContext* ctx, const v1::QueryRequest* request,
+                     grpc::ServerWriter<v1::QueryResponse>* writer) override;
+  grpc::Status ExportTriangulation(
+      grpc::ServerContext* ctx, const v1::ExportTriangulationRequest* request,
+      grpc::ServerWriter<v1::ExportTriangulationResponse>* writer) override;
+
+ private:
+  void UpdateGauges();
+
+  SessionRegistry* registry_;
+  Metrics* metrics_;
+};
+
+}  // namespace kinetri::server
+
+#endif  // KINETRI_SERVER_SERVICE_H_

@@ -1,0 +1,126 @@
+// Sessions (one triangulation each) and the registry that owns them.
+#include "server/session_registry.h"
+
+#include "absl/strings/match.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+
+namespace kinetri::server {
+
+Session::Session(std::string id, core::Triangulation tri, std::string backend,
+                 uint64_t max_query_results, uint32_t threads)
+    : id_(std::move(id)),
+      backend_(std::move(backend)),
+      max_query_results_(max_query_results),
+      threads_(threads),
+      create_time_(absl::Now()),
+      point_count_(tri.size()),
+      tri_(std::move(tri)),
+      update_time_(create_time_) {}
+
+bool ValidSessionId(const std::string& id) {
+  if (id.empty() || id.size() > 63) return false;
+  for (char c : id) {
+    if (!((c >= 'a' && c <= 'z') || (c >= '0' && c <= '9') || c == '-')) {
+      return false;
+    }
+  }
+  return true;
+}
+
+absl::StatusOr<std::string> ParseSessionName(const std::string& name,
+                                             const std::string& field) {
+  constexpr absl::string_view kPrefix = "sessions/";
+  if (!absl::StartsWith(name, kPrefix) ||
+      !ValidSessionId(name.substr(kPrefix.size()))) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        field, ": \"", name, "\" is not a session name (sessions/{id})"));
+  }
+  return name.substr(kPrefix.size());
+}
+
+absl::Status SessionRegistry::CheckCapacity(uint64_t points) const {
+  if (points > limits_.max_points_per_session) {
+    return absl::ResourceExhaustedError(
+        absl::StrCat("point_count: ", points, " exceeds the limit of ",
+                     limits_.max_points_per_session, " points per session"));
+  }
+  absl::MutexLock lock(&mu_);
+  if (sessions_.size() >= limits_.max_sessions) {
+    return absl::ResourceExhaustedError(
+        absl::StrCat("the server holds its maximum of ", limits_.max_sessions,
+                     " sessions; delete one first"));
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::shared_ptr<Session>> SessionRegistry::Add(
+    std::shared_ptr<Session> s) {
+  absl::MutexLock lock(&mu_);
+  if (sessions_.size() >= limits_.max_sessions) {
+    return absl::ResourceExhaustedError(
+        absl::StrCat("the server holds its maximum of ", limits_.max_sessions,
+                     " sessions; delete one first"));
+  }
+  if (!sessions_.emplace(s->id(), s).second) {
+    return absl::AlreadyExistsError(
+        absl::StrCat("session_id: ", s->name(), " already exists"));
+  }
+  return s;
+}
+
+absl::StatusOr<std::shared_ptr<Session>> SessionRegistry::Get(
+    const std::string& name) const {
+  auto id = ParseSessionName(name, "name");
+  if (!id.ok()) return id.status();
+  absl::MutexLock lock(&mu_);
+  auto it = sessions_.find(*id);
+  if (it == sessions_.end()) {
+    return absl::NotFoundError(absl::StrCat(name, " does not exist"));
+  }
+  return it->second;
+}
+
+absl::Status SessionRegistry::Remove(const std::string& name) {
+  auto id = ParseSessionName(name, "name");
+  if (!id.ok()) return id.status();
+  absl::MutexLock lock(&mu_);
+  if (sessions_.erase(*id) == 0) {
+    return absl::NotFoundError(absl::StrCat(name, " does not exist"));
+  }
+  return absl::OkStatus();
+}
+
+std::vector<std::shared_ptr<Session>> SessionRegistry::List(
+    const std::string& after, size_t limit) const {
+  absl::MutexLock lock(&mu_);
+  std::vector<std::shared_ptr<Session>> out;
+  for (auto it = sessions_.upper_bound(after);
+       it != sessions_.end() && out.size() < limit; ++it) {
+    out.push_back(it->second);
+  }
+  return out;
+}
+
+std::string SessionRegistry::NewId() {
+  absl::MutexLock lock(&mu_);
+  std::string id;
+  do {
+    id = absl::StrFormat("s-%06d", next_id_++);
+  } while (sessions_.count(id));
+  return id;
+}
+
+size_t SessionRegistry::size() const {
+  absl::MutexLock lock(&mu_);
+  return sessions_.size();
+}
+
+uint64_t SessionRegistry::total_points() const {
+  absl::MutexLock lock(&mu_);
+  uint64_t total = 0;
+  for (const auto& [id, s] : sessions_) total += s->point_count();
+  return total;
+}
+
+}  // namespace kinetri::server

@@ -1,0 +1,101 @@
+// Sessions (one triangulation each) and the registry that owns them.
+#ifndef KINETRI_SERVER_SESSION_REGISTRY_H_
+#define KINETRI_SERVER_SESSION_REGISTRY_H_
+
+#include <cstdint>
+#include <map>
+#include <memory>
+#include <shared_mutex>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "absl/synchronization/mutex.h"
+#include "absl/time/time.h"
+#include "core/triangulation.h"
+
+namespace kinetri::server {
+
+struct ServerLimits {
+  uint32_t max_sessions = 64;
+  uint64_t max_points_per_session = 50'000'000;
+  uint64_t max_query_results = 200'000'000;
+  int default_threads = 0;
+};
+
+// One session: its triangulation, step counter and metadata. Updates take
+// the lock exclusively (steps apply one at a time, atomically); queries take
+// it shared and run concurrently.
+class Session {
+ public:
+  Session(std::string id, core::Triangulation tri, std::string backend,
+          uint64_t max_query_results, uint32_t threads);
+
+  const std::string& id() const { return id_; }
+  std::string name() const { return "sessions/" + id_; }
+  const std::string& backend() const { return backend_; }
+  uint64_t max_query_results() const { return max_query_results_; }
+  uint32_t threads() const { return threads_; }
+  absl::Time create_time() const { return create_time_; }
+  uint64_t point_count() const { return point_count_; }
+
+  std::shared_mutex& mutex() { return mu_; }
+  // Guarded by mutex().
+  core::Triangulation& tri() { return tri_; }
+  uint64_t step() const { return step_; }
+  void set_step(uint64_t s) {
+    step_ = s;
+    update_time_ = absl::Now();
+  }
+  absl::Time update_time() const { return update_time_; }
+
+ private:
+  const std::string id_;
+  const std::string backend_;
+  const uint64_t max_query_results_;
+  const uint32_t threads_;
+  const absl::Time create_time_;
+  const uint64_t point_count_;
+  std::shared_mutex mu_;
+  core::Triangulation tri_;
+  uint64_t step_ = 0;
+  absl::Time update_time_;
+};
+
+class SessionRegistry {
+ public:
+  explicit SessionRegistry(ServerLimits limits) : limits_(limits) {}
+
+  const ServerLimits& limits() const { return limits_; }
+
+  // Adds a session; ALREADY_EXISTS / RESOURCE_EXHAUSTED on conflict.
+  absl::StatusOr<std::shared_ptr<Session>> Add(std::shared_ptr<Session> s);
+  // Checks that one more session would fit (before building it).
+  absl::Status CheckCapacity(uint64_t points) const;
+  // NOT_FOUND (naming the session) if absent; name is "sessions/{id}".
+  absl::StatusOr<std::shared_ptr<Session>> Get(const std::string& name) const;
+  absl::Status Remove(const std::string& name);
+  // Sessions with id > after, ascending, at most `limit`.
+  std::vector<std::shared_ptr<Session>> List(const std::string& after,
+                                             size_t limit) const;
+  std::string NewId();
+  size_t size() const;
+  uint64_t total_points() const;
+
+ private:
+  const ServerLimits limits_;
+  mutable absl::Mutex mu_;
+  std::map<std::string, std::shared_ptr<Session>> sessions_
+      ABSL_GUARDED_BY(mu_);
+  uint64_t next_id_ ABSL_GUARDED_BY(mu_) = 1;
+};
+
+// "sessions/{id}" -> id, or INVALID_ARGUMENT naming `field`.
+absl::StatusOr<std::string> ParseSessionName(const std::string& name,
+                                             const std::string& field);
+// Session ids: [a-z0-9-]{1,63}.
+bool ValidSessionId(const std::string& id);
+
+}  // namespace kinetri::server
+
+#endif  // KINETRI_SERVER_SESSION_REGISTRY_H_

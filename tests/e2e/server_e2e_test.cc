@@ -1,0 +1,334 @@
+// End-to-end: the real kinetri-server driven by the C++ client over loopback.
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <random>
+#include <thread>
+
+#include "client/cpp/kinetri_client.h"
+#include "core/predicates.h"
+#include "tests/e2e/server_process.h"
+
+namespace kinetri {
+namespace {
+
+using core::CompareCloser;
+using core::CompareDistanceToRadius;
+using core::Vec2;
+
+Vec2 At(const std::vector<double>& xy, size_t i) {
+  return {xy[2 * i], xy[2 * i + 1]};
+}
+
+// Ids ranked from q as the server documents (exact distance, then larger x,
+// larger y, then smaller id).
+std::vector<uint32_t> Rank(const std::vector<double>& xy, const Vec2& q,
+                           int64_t self) {
+  std::vector<uint32_t> ids;
+  for (uint32_t i = 0; i < xy.size() / 2; ++i) {
+    if (i != self) ids.push_back(i);
+  }
+  std::sort(ids.begin(), ids.end(), [&](uint32_t a, uint32_t b) {
+    const int c = CompareCloser(q, At(xy, a), At(xy, b));
+    return c != 0 ? c < 0 : a < b;
+  });
+  return ids;
+}
+
+std::vector<uint32_t> Row(const Neighbors& n, size_t i) {
+  return {n.ids.begin() + n.offsets[i], n.ids.begin() + n.offsets[i + 1]};
+}
+
+class E2eTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    server_ = std::make_unique<testing::ServerProcess>(
+        KINETRI_SERVER_BINARY,
+        std::vector<std::string>{"--max_points=200000", "--max_sessions=4",
+                                 "--threads=2"});
+    ASSERT_TRUE(server_->ok());
+    client_ = std::make_unique<Client>(server_->target(), /*chunk_points=*/700);
+  }
+  std::vector<double> Uniform(size_t n, uint64_t seed) {
+    std::mt19937_64 rng(seed);
+    std::uniform_real_distribution<double> u(0, 1);
+    std::vector<double> xy(2 * n);
+    for (double& v : xy) v = u(rng);
+    return xy;
+  }
+  std::unique_ptr<testing::ServerProcess> server_;
+  std::unique_ptr<Client> client_;
+};
+
+TEST_F(E2eTest, LifecycleStepsQueriesExport) {
+  const size_t n = 5000;
+  std::vector<double> xy = Uniform(n, 1);
+  xy[2 * 7] = xy[2 * 8];  // a coincident pair
+  xy[2 * 7 + 1] = xy[2 * 8 + 1];
+  auto session = client_->CreateSession(xy, v1::SessionOptions(), "life");
+  ASSERT_TRUE(session.ok()) << session.status();
+  EXPECT_EQ(session->name(), "sessions/life");
+  EXPECT_EQ(session->point_count(), n);
+  EXPECT_EQ(session->site_count(), n - 1);
+
+  auto stream = client_->OpenSteps(session->name());
+  ASSERT_TRUE(stream.ok());
+  std::mt19937_64 rng(2);
+  std::normal_distribution<double> g(0, 0.1 / std::sqrt(double(n)));
+  std::uniform_int_distribution<uint32_t> pick(0, n - 1);
+  for (int s = 1; s <= 120; ++s) {
+    absl::StatusOr<v1::StepResponse> ack;
+    if (s % 10 == 0) {  // sparse
+      std::vector<uint32_t> ids;
+      std::vector<double> d;
+      std::vector<bool> used(n, false);
+      for (int k = 0; k < 50; ++k) {
+        const uint32_t id = pick(rng);
+        if (used[id]) continue;
+        used[id] = true;
+        ids.push_back(id);
+        d.push_back(g(rng));
+        d.push_back(g(rng));
+      }
+      ack = (*stream)->MoveBy(ids, d);
+      for (size_t k = 0; k < ids.size(); ++k) {
+        xy[2 * ids[k]] += d[2 * k];
+        xy[2 * ids[k] + 1] += d[2 * k + 1];
+      }
+    } else if (s == 55) {  // absolute positions, dense
+      std::vector<double> p = xy;
+      for (double& v : p) v += g(rng);
+      ack = (*stream)->MoveTo({}, p);
+      xy = p;
+    } else {
+      std::vector<double> d(2 * n);
+      for (double& v : d) v = g(rng);
+      ack = (*stream)->MoveBy(d);
+      for (size_t i = 0; i < d.size(); ++i) xy[i] += d[i];
+    }
+    ASSERT_TRUE(ack.ok()) << "step " << s << ": " << ack.status();
+    ASSERT_EQ(ack->step(), uint64_t(s));
+    ASSERT_FALSE(ack->stats().path().empty());
+  }
+  ASSERT_TRUE((*stream)->Finish().ok());
+
+  // Queries of every kind against brute force.
+  auto all = client_->NearestOfAll(session->name());
+  ASSERT_TRUE(all.ok()) << all.status();
+  EXPECT_EQ(all->step, 120u);
+  ASSERT_EQ(all->rows(), n);
+  for (uint32_t i = 0; i < n; i += 7) {
+    ASSERT_EQ(Row(*all, i), std::vector<uint32_t>{Rank(xy, At(xy, i), i)[0]});
+  }
+  std::vector<uint32_t> ids;
+  for (uint32_t i = 0; i < n; i += 97) ids.push_back(i);
+  auto knn = client_->KNearestOfPoints(session->name(), ids, 5, true);
+  ASSERT_TRUE(knn.ok());
+  for (size_t r = 0; r < ids.size(); ++r) {
+    auto want = Rank(xy, At(xy, ids[r]), ids[r]);
+    want.resize(5);
+    ASSERT_EQ(Row(*knn, r), want);
+  }
+  const std::vector<double> q = Uniform(60, 3);
+  auto knq = client_->KNearest(session->name(), q, 3);
+  ASSERT_TRUE(knq.ok());
+  const double radius = 0.03;
+  auto rq = client_->WithinRadius(session->name(), q, radius);
+  ASSERT_TRUE(rq.ok());
+  for (size_t r = 0; r < q.size() / 2; ++r) {
+    auto rank = Rank(xy, At(q, r), -1);
+    std::vector<uint32_t> want3(rank.begin(), rank.begin() + 3);
+    ASSERT_EQ(Row(*knq, r), want3);
+    std::vector<uint32_t> in;
+    for (uint32_t id : rank) {
+      if (CompareDistanceToRadius(At(q, r), At(xy, id), radius) <= 0) {
+        in.push_back(id);
+      }
+    }
+    ASSERT_EQ(Row(*rq, r), in);
+    ASSERT_EQ(rq->distances.size(), rq->ids.size());
+  }
+  auto capped =
+      client_->WithinRadiusOfPoints(session->name(), ids, 0.05, true, 2);
+  ASSERT_TRUE(capped.ok());
+  EXPECT_FALSE(capped->truncated_rows.empty());
+  for (size_t r = 0; r < ids.size(); ++r)
+    EXPECT_LE(capped->offsets[r + 1] - capped->offsets[r], 2u);
+
+  // Export: the positions the client tracked, and counter-clockwise
+  // triangles covering every site.
+  auto mesh = client_->Export(session->name());
+  ASSERT_TRUE(mesh.ok());
+  EXPECT_EQ(mesh->xy, xy);
+  ASSERT_GT(mesh->triangles.size(), 3 * (n - 100));
+  for (size_t t = 0; t < mesh->triangles.size(); t += 3) {
+    ASSERT_GT(core::Orient2d(At(xy, mesh->triangles[t]),
+                             At(xy, mesh->triangles[t + 1]),
+                             At(xy, mesh->triangles[t + 2])),
+              0);
+  }
+  auto listed = client_->ListSessions();
+  ASSERT_TRUE(listed.ok());
+  ASSERT_EQ(listed->size(), 1u);
+  ASSERT_TRUE(client_->DeleteSession(session->name()).ok());
+  EXPECT_EQ(client_->GetSession(session->name()).status().code(),
+            absl::StatusCode::kNotFound);
+}
+
+TEST_F(E2eTest, ErrorsLeaveTheSessionUnchanged) {
+  const size_t n = 500;
+  const std::vector<double> xy = Uniform(n, 4);
+  auto session = client_->CreateSession(xy, v1::SessionOptions(), "errs");
+  ASSERT_TRUE(session.ok());
+  const std::string name = session->name();
+  auto expect_unchanged = [&] {
+    auto s = client_->GetSession(name);
+    ASSERT_TRUE(s.ok());
+    EXPECT_EQ(s->step(), 0u);
+    auto mesh = client_->Export(name);
+    ASSERT_TRUE(mesh.ok());
+    EXPECT_EQ(mesh->xy, xy);
+  };
+  {
+    auto st = client_->OpenSteps(name);
+    std::vector<double> d(2 * n, 0.001);
+    d[2 * 13 + 1] = std::nan("");
+    auto ack = (*st)->MoveBy(d);
+    EXPECT_EQ(ack.status().code(), absl::StatusCode::kInvalidArgument);
+    EXPECT_NE(ack.status().message().find("deltas[13].y"), std::string::npos)
+        << ack.status();
+  }
+  expect_unchanged();
+  {
+    auto st = client_->OpenSteps(name);
+    auto ack = (*st)->MoveBy(std::vector<double>(2 * n - 2, 0.0));
+    EXPECT_EQ(ack.status().code(), absl::StatusCode::kInvalidArgument);
+  }
+  {
+    auto st = client_->OpenSteps(name);
+    auto ack = (*st)->MoveBy({3, 5000}, {0.1, 0.1, 0.1, 0.1});
+    EXPECT_EQ(ack.status().code(), absl::StatusCode::kNotFound);
+  }
+  expect_unchanged();
+  {  // out-of-order step
+    grpc::ClientContext ctx;
+    auto stream = client_->stub()->StreamSteps(&ctx);
+    v1::StepRequest req;
+    req.set_session(name);
+    req.set_step(5);
+    for (size_t i = 0; i < 2 * n; ++i) req.add_xy(0.0);
+    req.set_end_of_step(true);
+    stream->Write(req);
+    stream->WritesDone();
+    v1::StepResponse resp;
+    EXPECT_FALSE(stream->Read(&resp));
+    EXPECT_EQ(stream->Finish().error_code(),
+              grpc::StatusCode::FAILED_PRECONDITION);
+  }
+  {  // disconnect in the middle of a chunked step
+    grpc::ClientContext ctx;
+    auto stream = client_->stub()->StreamSteps(&ctx);
+    v1::StepRequest req;
+    req.set_session(name);
+    req.set_step(1);
+    for (size_t i = 0; i < n; ++i) req.add_xy(0.01);
+    stream->Write(req);  // no end_of_step
+    ctx.TryCancel();
+    stream->Finish();
+  }
+  expect_unchanged();
+  EXPECT_EQ(client_->GetSession("sessions/nope").status().code(),
+            absl::StatusCode::kNotFound);
+  EXPECT_EQ(client_->GetSession("bad/name").status().code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(client_->KNearestOfPoints(name, {1}, 0, true).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(client_->WithinRadius(name, {0.5, 0.5}, -1.0).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(client_->KNearest(name, {0.5, std::nan("")}, 2).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(client_->KNearestOfPoints(name, {9999}, 1, true).status().code(),
+            absl::StatusCode::kNotFound);
+  // Limits.
+  EXPECT_EQ(client_->CreateSession(Uniform(200001, 5), v1::SessionOptions())
+                .status()
+                .code(),
+            absl::StatusCode::kResourceExhausted);
+  EXPECT_EQ(
+      client_->CreateSession(xy, v1::SessionOptions(), "errs").status().code(),
+      absl::StatusCode::kAlreadyExists);
+  for (int i = 0; i < 3; ++i) {
+    ASSERT_TRUE(
+        client_->CreateSession(Uniform(50, 10 + i), v1::SessionOptions()).ok());
+  }
+  EXPECT_EQ(client_->CreateSession(xy, v1::SessionOptions()).status().code(),
+            absl::StatusCode::kResourceExhausted);
+  expect_unchanged();
+}
+
+TEST_F(E2eTest, ConcurrentSessionsStayIndependent) {
+  const size_t n = 3000;
+  std::vector<std::vector<double>> xy = {Uniform(n, 21), Uniform(n, 22)};
+  std::vector<std::string> names;
+  for (int k = 0; k < 2; ++k) {
+    auto s = client_->CreateSession(xy[k], v1::SessionOptions());
+    ASSERT_TRUE(s.ok());
+    names.push_back(s->name());
+  }
+  auto worker = [&](int k) {
+    Client own(server_->target());
+    auto st = own.OpenSteps(names[k]);
+    if (!st.ok()) return;
+    std::mt19937_64 rng(30 + k);
+    std::normal_distribution<double> g(0, 0.002);
+    for (int s = 0; s < 60; ++s) {
+      std::vector<double> d(2 * n);
+      for (double& v : d) v = g(rng);
+      if (!(*st)->MoveBy(d).ok()) return;
+      for (size_t i = 0; i < d.size(); ++i) xy[k][i] += d[i];
+      if (!own.NearestOfAll(names[k]).ok()) return;
+    }
+    (*st)->Finish().ok();
+  };
+  std::thread a(worker, 0), b(worker, 1);
+  a.join();
+  b.join();
+  for (int k = 0; k < 2; ++k) {
+    auto mesh = client_->Export(names[k]);
+    ASSERT_TRUE(mesh.ok());
+    EXPECT_EQ(mesh->step, 60u);
+    EXPECT_EQ(mesh->xy, xy[k]);
+  }
+}
+
+TEST_F(E2eTest, MetricsMove) {
+  const std::string before =
+      testing::HttpGet(server_->metrics_port(), "/metrics");
+  ASSERT_NE(before.find("kinetri_sessions"), std::string::npos) << before;
+  const std::vector<double> xy = Uniform(400, 40);
+  auto s = client_->CreateSession(xy, v1::SessionOptions());
+  ASSERT_TRUE(s.ok());
+  auto st = client_->OpenSteps(s->name());
+  ASSERT_TRUE((*st)->MoveBy(std::vector<double>(800, 0.0001)).ok());
+  ASSERT_TRUE((*st)->Finish().ok());
+  ASSERT_TRUE(client_->NearestOfAll(s->name()).ok());
+  EXPECT_FALSE(client_->KNearestOfPoints(s->name(), {1}, -1, true).ok());
+  const std::string after =
+      testing::HttpGet(server_->metrics_port(), "/metrics");
+  EXPECT_NE(after.find("kinetri_steps_total{path="), std::string::npos);
+  EXPECT_NE(
+      after.find("kinetri_update_duration_seconds_count{backend=\"cpu\"} 1"),
+      std::string::npos)
+      << after;
+  EXPECT_NE(after.find("kinetri_query_duration_seconds_count{backend=\"cpu\","
+                       "op=\"nearest\"} 1"),
+            std::string::npos);
+  EXPECT_NE(after.find("grpc_code=\"INVALID_ARGUMENT\""), std::string::npos);
+  EXPECT_NE(after.find("kinetri_sessions 1"), std::string::npos);
+}
+
+TEST_F(E2eTest, GracefulShutdown) { EXPECT_EQ(server_->Stop(), 0); }
+
+}  // namespace
+}  // namespace kinetri

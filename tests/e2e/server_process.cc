@@ -1,0 +1,92 @@
+// Starts the real kinetri-server binary on loopback ephemeral ports.
+#include "tests/e2e/server_process.h"
+
+#include <arpa/inet.h>
+#include <netinet/in.h>
+#include <signal.h>
+#include <sys/socket.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <cstdio>
+#include <cstring>
+
+namespace kinetri::testing {
+
+ServerProcess::ServerProcess(const std::string& binary,
+                             const std::vector<std::string>& flags) {
+  int out[2];
+  if (pipe(out) != 0) return;
+  pid_ = fork();
+  if (pid_ == 0) {
+    dup2(out[1], STDOUT_FILENO);
+    close(out[0]);
+    std::vector<std::string> args = {binary, "--listen=127.0.0.1:0",
+                                     "--metrics_listen=127.0.0.1:0"};
+    args.insert(args.end(), flags.begin(), flags.end());
+    std::vector<char*> argv;
+    for (auto& a : args) argv.push_back(a.data());
+    argv.push_back(nullptr);
+    execv(binary.c_str(), argv.data());
+    _exit(127);
+  }
+  close(out[1]);
+  FILE* f = fdopen(out[0], "r");
+  char line[512];
+  while (f && fgets(line, sizeof line, f)) {
+    int p = 0;
+    if (std::sscanf(line, "kinetri-server: metrics on %*s (port %d)", &p) ==
+        1) {
+      metrics_port_ = p;
+    } else if (std::sscanf(line, "kinetri-server: listening on port %d", &p) ==
+               1) {
+      grpc_port_ = p;
+      break;
+    }
+  }
+  // Keep draining the pipe so that the server never blocks on stdout.
+  if (f) {
+    if (fork() == 0) {
+      while (fgets(line, sizeof line, f)) {
+      }
+      _exit(0);
+    }
+    fclose(f);
+  }
+}
+
+int ServerProcess::Stop() {
+  if (pid_ <= 0) return -1;
+  kill(pid_, SIGTERM);
+  int status = 0;
+  waitpid(pid_, &status, 0);
+  pid_ = -1;
+  return status;
+}
+
+ServerProcess::~ServerProcess() { Stop(); }
+
+std::string HttpGet(int port, const std::string& path) {
+  const int fd = socket(AF_INET, SOCK_STREAM, 0);
+  if (fd < 0) return "";
+  sockaddr_in addr{};
+  addr.sin_family = AF_INET;
+  addr.sin_port = htons(static_cast<uint16_t>(port));
+  addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  std::string body;
+  if (connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof addr) == 0) {
+    const std::string req = "GET " + path +
+                            " HTTP/1.0\r\nHost: 127.0.0.1\r\nConnection: "
+                            "close\r\n\r\n";
+    if (write(fd, req.data(), req.size()) == ssize_t(req.size())) {
+      char buf[65536];
+      ssize_t k;
+      while ((k = read(fd, buf, sizeof buf)) > 0) body.append(buf, k);
+    }
+  }
+  close(fd);
+  const size_t sep = body.find("\r\n\r\n");
+  return sep == std::string::npos ? "" : body.substr(sep + 4);
+}
+
+}  // namespace kinetri::testing

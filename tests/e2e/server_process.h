@@ -1,0 +1,39 @@
+// Starts the real kinetri-server binary on loopback ephemeral ports.
+#ifndef KINETRI_TESTS_E2E_SERVER_PROCESS_H_
+#define KINETRI_TESTS_E2E_SERVER_PROCESS_H_
+
+#include <sys/types.h>
+
+#include <string>
+#include <vector>
+
+namespace kinetri::testing {
+
+class ServerProcess {
+ public:
+  // Runs `binary` with --listen=127.0.0.1:0 --metrics_listen=127.0.0.1:0 and
+  // the extra flags; waits until it prints its ports.
+  explicit ServerProcess(const std::string& binary,
+                         const std::vector<std::string>& flags = {});
+  ~ServerProcess();  // SIGTERM, then wait
+
+  bool ok() const { return grpc_port_ > 0; }
+  std::string target() const {
+    return "127.0.0.1:" + std::to_string(grpc_port_);
+  }
+  int metrics_port() const { return metrics_port_; }
+  // Sends SIGTERM and returns the exit status.
+  int Stop();
+
+ private:
+  pid_t pid_ = -1;
+  int grpc_port_ = 0;
+  int metrics_port_ = 0;
+};
+
+// GET http://127.0.0.1:port/path; returns the body ("" on failure).
+std::string HttpGet(int port, const std::string& path);
+
+}  // namespace kinetri::testing
+
+#endif  // KINETRI_TESTS_E2E_SERVER_PROCESS_H_
