@@ -1,10 +1,25 @@
 #!/usr/bin/env bash
-# Main job: install what is missing, build, and run the kinetic demo
-# (moves points, prints per-step figures, writes out/kinetri.svg).
+# Main job: install what is missing, build, start kinetri-server with its
+# embedded defaults, run the kinetri-sim demo client against it (DLA, then a
+# Brownian gas), write pictures to out/, and stop the server.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 bash scripts/build.sh
 mkdir -p out
-./build/client/kinetri-sim --n="${KINETRI_DEMO_N:-50000}" --steps=10 \
-  --svg=out/kinetri.svg "$@"
+./build/server/kinetri-server --listen=127.0.0.1:0 >out/server.log 2>&1 &
+server_pid=$!
+trap 'kill -TERM $server_pid 2>/dev/null; wait $server_pid 2>/dev/null || true' EXIT
+port=""
+for _ in $(seq 100); do
+  port=$(sed -n 's/^kinetri-server: listening on port \([0-9]*\).*/\1/p' out/server.log)
+  [[ -n "$port" ]] && break
+  sleep 0.1
+done
+[[ -n "$port" ]] || { cat out/server.log; echo "server did not start" >&2; exit 1; }
+echo "kinetri-server is up on 127.0.0.1:$port (log: out/server.log)"
+./build/client/kinetri-sim --server="127.0.0.1:$port" --mode=dla --n=5000 \
+  --steps=300 --sigma=0.5 --svg=out/kinetri-dla.svg
+./build/client/kinetri-sim --server="127.0.0.1:$port" --mode=brownian \
+  --n="${KINETRI_DEMO_N:-100000}" --steps=20 --sigma=0.1 \
+  --svg=out/kinetri-brownian.svg

@@ -7,7 +7,12 @@ PACKAGES=(
   libcgal-dev libgmp-dev libmpfr-dev libboost-dev
   libabsl-dev libtbb-dev libnanoflann-dev
   libgtest-dev libgmock-dev libbenchmark-dev
+  libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler
+  prometheus-cpp-dev
+  python3 python3-grpcio python3-protobuf python3-numpy
 )
+# Node.js (for client/node) comes with the machine image; it is not a Debian
+# package here, so it is checked, not installed.
 
 missing=()
 for p in "${PACKAGES[@]}"; do
@@ -24,4 +29,7 @@ if ((${#missing[@]})); then
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${missing[@]}"
 else
   echo "[setup] all Debian packages present"
+fi
+if ! command -v node >/dev/null 2>&1; then
+  echo "[setup] note: node not found; the Node.js client tests will be skipped"
 fi

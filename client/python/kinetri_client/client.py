@@ -1,0 +1,256 @@
+"""Idiomatic wrapper over the generated gRPC stubs."""
+
+from dataclasses import dataclass
+from typing import Iterator, List, Optional, Sequence
+
+import grpc
+import numpy as np
+
+from kinetri.v1 import kinetri_pb2 as pb
+from kinetri.v1 import kinetri_pb2_grpc as pb_grpc
+
+_CHUNK_POINTS = 131072  # 2 MiB of coordinates per message
+
+
+class KinetriError(Exception):
+    """A failed call: `code` is the grpc.StatusCode, str() the message."""
+
+    def __init__(self, code: grpc.StatusCode, message: str):
+        super().__init__(f"{code.name}: {message}")
+        self.code = code
+        self.message = message
+
+
+def _raise(err: grpc.RpcError):
+    raise KinetriError(err.code(), err.details()) from None
+
+
+def _xy(points) -> np.ndarray:
+    a = np.ascontiguousarray(points, dtype=np.float64)
+    if a.ndim != 2 or a.shape[1] != 2:
+        raise ValueError(f"points must have shape (n, 2), got {a.shape}")
+    return a.reshape(-1)
+
+
+@dataclass
+class Neighbors:
+    """CSR rows: neighbours of row i are ids[offsets[i]:offsets[i+1]]."""
+
+    step: int
+    offsets: np.ndarray
+    ids: np.ndarray
+    distances: np.ndarray
+    truncated_rows: np.ndarray
+
+    def row(self, i: int) -> np.ndarray:
+        return self.ids[self.offsets[i]:self.offsets[i + 1]]
+
+    def __len__(self) -> int:
+        return len(self.offsets) - 1
+
+
+class StepStream:
+    """One long-lived stream; each call applies one step and returns its stats."""
+
+    def __init__(self, stub, session: str, first_step: int):
+        self._session = session
+        self._next = first_step
+        self._requests: List[pb.StepRequest] = []
+        self._queue = _RequestQueue()
+        self._responses = stub.StreamSteps(iter(self._queue))
+
+    @property
+    def next_step(self) -> int:
+        return self._next
+
+    def move_by(self, deltas, ids: Optional[Sequence[int]] = None):
+        return self._send(pb.DISPLACEMENT_MODE_DELTA, deltas, ids)
+
+    def move_to(self, positions, ids: Optional[Sequence[int]] = None):
+        return self._send(pb.DISPLACEMENT_MODE_ABSOLUTE, positions, ids)
+
+    def _send(self, mode, values, ids):
+        flat = _xy(values)
+        id_arr = None if ids is None else np.asarray(ids, dtype=np.uint32)
+        if id_arr is not None and 2 * len(id_arr) != len(flat):
+            raise ValueError("one (x, y) pair per id")
+        step = 2 * _CHUNK_POINTS
+        start = 0
+        while True:
+            end = min(len(flat), start + step)
+            req = pb.StepRequest(session=self._session, step=self._next,
+                                 mode=mode, end_of_step=end == len(flat))
+            req.xy.extend(flat[start:end].tolist())
+            if id_arr is not None:
+                req.ids.extend(id_arr[start // 2:end // 2].tolist())
+            self._queue.put(req)
+            start = end
+            if start >= len(flat):
+                break
+        try:
+            resp = next(self._responses)
+        except grpc.RpcError as e:
+            _raise(e)
+        self._next += 1
+        return resp
+
+    def close(self):
+        self._queue.close()
+        try:
+            for _ in self._responses:
+                pass
+        except grpc.RpcError as e:
+            if e.code() != grpc.StatusCode.CANCELLED:
+                _raise(e)
+
+
+class _RequestQueue:
+    """Blocking iterator feeding a request stream."""
+
+    def __init__(self):
+        import queue
+        self._q = queue.Queue()
+
+    def put(self, item):
+        self._q.put(item)
+
+    def close(self):
+        self._q.put(None)
+
+    def __iter__(self) -> Iterator:
+        while True:
+            item = self._q.get()
+            if item is None:
+                return
+            yield item
+
+
+class Client:
+    """Connects to a kinetri-server at `target` ("host:port")."""
+
+    def __init__(self, target: str = "127.0.0.1:50051"):
+        self._channel = grpc.insecure_channel(
+            target, options=[("grpc.max_receive_message_length", 64 << 20)])
+        self._stub = pb_grpc.KinetriServiceStub(self._channel)
+
+    def close(self):
+        self._channel.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    # Sessions -------------------------------------------------------------
+    def create_session(self, points, session_id: str = "",
+                       threads: int = 0) -> pb.Session:
+        flat = _xy(points)
+
+        def requests():
+            yield pb.CreateSessionRequest(header=pb.CreateSessionHeader(
+                session_id=session_id, point_count=len(flat) // 2,
+                options=pb.SessionOptions(threads=threads)))
+            for i in range(0, len(flat), 2 * _CHUNK_POINTS):
+                yield pb.CreateSessionRequest(points=pb.PointChunk(
+                    xy=flat[i:i + 2 * _CHUNK_POINTS].tolist()))
+
+        try:
+            return self._stub.CreateSession(requests())
+        except grpc.RpcError as e:
+            _raise(e)
+
+    def get_session(self, name: str) -> pb.Session:
+        try:
+            return self._stub.GetSession(pb.GetSessionRequest(name=name))
+        except grpc.RpcError as e:
+            _raise(e)
+
+    def list_sessions(self) -> List[pb.Session]:
+        out, token = [], ""
+        while True:
+            try:
+                resp = self._stub.ListSessions(
+                    pb.ListSessionsRequest(page_size=100, page_token=token))
+            except grpc.RpcError as e:
+                _raise(e)
+            out.extend(resp.sessions)
+            token = resp.next_page_token
+            if not token:
+                return out
+
+    def delete_session(self, name: str) -> None:
+        try:
+            self._stub.DeleteSession(pb.DeleteSessionRequest(name=name))
+        except grpc.RpcError as e:
+            _raise(e)
+
+    def open_steps(self, name: str) -> StepStream:
+        return StepStream(self._stub, name, self.get_session(name).step + 1)
+
+    # Queries ----------------------------------------------------------------
+    def query(self, request: pb.QueryRequest) -> Neighbors:
+        offsets, ids, dists, trunc = [np.zeros(1, np.uint64)], [], [], []
+        step, base, rows = 0, 0, 0
+        try:
+            for chunk in self._stub.Query(request):
+                step = chunk.step
+                off = np.asarray(chunk.offsets, dtype=np.uint64)
+                offsets.append(off[1:] + base)
+                ids.append(np.asarray(chunk.ids, dtype=np.uint32))
+                dists.append(np.asarray(chunk.distances, dtype=np.float64))
+                trunc.append(np.asarray(chunk.truncated_rows, np.uint64) + rows)
+                base += len(chunk.ids)
+                rows += len(off) - 1
+        except grpc.RpcError as e:
+            _raise(e)
+        cat = np.concatenate
+        return Neighbors(step, cat(offsets), cat(ids) if ids else
+                         np.zeros(0, np.uint32),
+                         cat(dists) if dists else np.zeros(0),
+                         cat(trunc) if trunc else np.zeros(0, np.uint64))
+
+    def nearest_all(self, name: str) -> Neighbors:
+        return self.query(pb.QueryRequest(
+            session=name, kind=pb.QUERY_KIND_NEAREST, exclude_self=True,
+            include_distances=True, all_points=pb.AllPoints()))
+
+    def knn(self, name: str, k: int, points=None, ids=None,
+            exclude_self: bool = True) -> Neighbors:
+        req = pb.QueryRequest(session=name, kind=pb.QUERY_KIND_K_NEAREST, k=k,
+                              include_distances=True,
+                              exclude_self=exclude_self)
+        self._targets(req, points, ids)
+        return self.query(req)
+
+    def radius(self, name: str, r: float, points=None, ids=None,
+               exclude_self: bool = True, max_per_row: int = 0) -> Neighbors:
+        req = pb.QueryRequest(session=name, kind=pb.QUERY_KIND_RADIUS,
+                              radius=r, include_distances=True,
+                              exclude_self=exclude_self,
+                              max_results_per_row=max_per_row)
+        self._targets(req, points, ids)
+        return self.query(req)
+
+    @staticmethod
+    def _targets(req, points, ids):
+        if points is not None:
+            req.positions.xy.extend(_xy(points).tolist())
+        elif ids is not None:
+            req.point_ids.ids.extend(np.asarray(ids, np.uint32).tolist())
+        else:
+            req.all_points.SetInParent()
+
+    def export(self, name: str):
+        """Returns (step, positions (n, 2), triangles (m, 3))."""
+        xy, tris, step = [], [], 0
+        try:
+            for chunk in self._stub.ExportTriangulation(
+                    pb.ExportTriangulationRequest(session=name)):
+                step = chunk.step
+                xy.append(np.asarray(chunk.xy, dtype=np.float64))
+                tris.append(np.asarray(chunk.triangles, dtype=np.uint32))
+        except grpc.RpcError as e:
+            _raise(e)
+        return (step, np.concatenate(xy).reshape(-1, 2),
+                np.concatenate(tris).reshape(-1, 3))

@@ -1,0 +1,111 @@
+"""End-to-end tests of the Python client against a real kinetri-server."""
+
+import os
+import re
+import subprocess
+import unittest
+
+import grpc
+import numpy as np
+
+from kinetri_client import Client, KinetriError
+
+
+def start_server():
+    binary = os.environ["KINETRI_SERVER"]
+    proc = subprocess.Popen(
+        [binary, "--listen=127.0.0.1:0", "--metrics_listen="],
+        stdout=subprocess.PIPE, text=True)
+    for line in proc.stdout:
+        m = re.search(r"listening on port (\d+)", line)
+        if m:
+            return proc, f"127.0.0.1:{m.group(1)}"
+    raise RuntimeError("server did not start")
+
+
+class ClientTest(unittest.TestCase):
+    @classmethod
+    def setUpClass(cls):
+        cls.proc, cls.target = start_server()
+
+    @classmethod
+    def tearDownClass(cls):
+        cls.proc.terminate()
+        cls.proc.wait(timeout=30)
+
+    def test_lifecycle_against_brute_force(self):
+        rng = np.random.default_rng(5)
+        n = 3000
+        pts = rng.random((n, 2))
+        with Client(self.target) as c:
+            s = c.create_session(pts, session_id="py-life")
+            self.assertEqual(s.name, "sessions/py-life")
+            self.assertEqual(s.point_count, n)
+            steps = c.open_steps(s.name)
+            for i in range(100):
+                d = rng.normal(0, 0.1 / np.sqrt(n), (n, 2))
+                ack = steps.move_by(d)
+                pts = pts + d
+                self.assertEqual(ack.step, i + 1)
+            ids = np.arange(0, 40)
+            d = rng.normal(0, 0.01, (40, 2))
+            steps.move_by(d, ids=ids)
+            pts[ids] += d
+            steps.close()
+
+            diff = pts[:, None, :] - pts[None, :, :]
+            dist2 = (diff ** 2).sum(-1)
+            np.fill_diagonal(dist2, np.inf)
+            nn = c.nearest_all(s.name)
+            self.assertEqual(nn.step, 101)
+            self.assertTrue(np.array_equal(nn.ids, dist2.argmin(1)))
+            self.assertTrue(np.allclose(nn.distances, np.sqrt(dist2.min(1))))
+
+            q = rng.random((50, 2))
+            knn = c.knn(s.name, 4, points=q)
+            qd = ((q[:, None, :] - pts[None, :, :]) ** 2).sum(-1)
+            want = np.argsort(qd, axis=1)[:, :4]
+            for r in range(len(q)):
+                self.assertTrue(np.array_equal(knn.row(r), want[r]))
+
+            r = 0.03
+            rad = c.radius(s.name, r, ids=np.arange(100))
+            for i in range(100):
+                inside = np.nonzero(dist2[i] <= r * r)[0]
+                self.assertEqual(sorted(rad.row(i).tolist()),
+                                 sorted(inside.tolist()))
+
+            step, xy, tris = c.export(s.name)
+            self.assertEqual(step, 101)
+            self.assertTrue(np.array_equal(xy, pts))
+            self.assertGreater(len(tris), n)
+            c.delete_session(s.name)
+            with self.assertRaises(KinetriError) as e:
+                c.get_session(s.name)
+            self.assertEqual(e.exception.code, grpc.StatusCode.NOT_FOUND)
+
+    def test_errors(self):
+        with Client(self.target) as c:
+            s = c.create_session(np.random.default_rng(6).random((200, 2)))
+            steps = c.open_steps(s.name)
+            bad = np.zeros((200, 2))
+            bad[3, 0] = np.nan
+            with self.assertRaises(KinetriError) as e:
+                steps.move_by(bad)
+            self.assertEqual(e.exception.code, grpc.StatusCode.INVALID_ARGUMENT)
+            self.assertIn("deltas[3].x", e.exception.message)
+            self.assertEqual(c.get_session(s.name).step, 0)
+            with self.assertRaises(KinetriError) as e:
+                c.knn(s.name, 0, ids=[1])
+            self.assertEqual(e.exception.code, grpc.StatusCode.INVALID_ARGUMENT)
+            with self.assertRaises(KinetriError) as e:
+                c.radius(s.name, -1.0, ids=[1])
+            self.assertEqual(e.exception.code, grpc.StatusCode.INVALID_ARGUMENT)
+            with self.assertRaises(KinetriError) as e:
+                c.nearest_all("sessions/missing")
+            self.assertEqual(e.exception.code, grpc.StatusCode.NOT_FOUND)
+            c.delete_session(s.name)
+
+
+if __name__ == "__main__":
+    unittest.main()
