@@ -1,0 +1,89 @@
+// End-to-end test of the Node.js client against a real kinetri-server.
+'use strict';
+
+const test = require('node:test');
+const assert = require('node:assert');
+const {spawn} = require('node:child_process');
+const readline = require('node:readline');
+const {Client, status} = require('..');
+
+function startServer() {
+  return new Promise((resolve, reject) => {
+    const proc = spawn(process.env.KINETRI_SERVER,
+                       ['--listen=127.0.0.1:0', '--metrics_listen=']);
+    const rl = readline.createInterface({input: proc.stdout});
+    rl.on('line', (line) => {
+      const m = /listening on port (\d+)/.exec(line);
+      if (m) resolve({proc, target: `127.0.0.1:${m[1]}`});
+    });
+    proc.on('exit', () => reject(new Error('server exited')));
+  });
+}
+
+function rng(seed) {
+  let s = seed >>> 0;
+  return () => ((s = (s * 1664525 + 1013904223) >>> 0) / 2 ** 32);
+}
+
+test('create, step, query against brute force, export, errors', async () => {
+  const {proc, target} = await startServer();
+  const client = new Client(target);
+  try {
+    const rand = rng(7);
+    const n = 1500;
+    const xy = new Float64Array(2 * n).map(() => rand());
+    const s = await client.createSession(xy, 'node-life');
+    assert.strictEqual(s.name, 'sessions/node-life');
+    assert.strictEqual(s.pointCount, n);
+
+    const steps = await client.openSteps(s.name);
+    for (let k = 1; k <= 100; k++) {
+      const d = new Float64Array(2 * n).map(() => (rand() - 0.5) * 0.002);
+      const ack = await steps.moveBy(d);
+      assert.strictEqual(ack.step, k);
+      for (let i = 0; i < xy.length; i++) xy[i] += d[i];
+    }
+    await steps.close();
+
+    const nn = await client.nearestAll(s.name);
+    assert.strictEqual(nn.step, 100);
+    for (let i = 0; i < n; i += 13) {
+      let best = -1, bd = Infinity;
+      for (let j = 0; j < n; j++) {
+        if (j === i) continue;
+        const dx = xy[2 * i] - xy[2 * j], dy = xy[2 * i + 1] - xy[2 * j + 1];
+        const dd = dx * dx + dy * dy;
+        if (dd < bd) { bd = dd; best = j; }
+      }
+      assert.strictEqual(nn.ids[nn.offsets[i]], best);
+    }
+    const r = 0.04;
+    const near = await client.radius(s.name, r, {positions: [0.5, 0.5]});
+    const want = [];
+    for (let j = 0; j < n; j++) {
+      const dx = xy[2 * j] - 0.5, dy = xy[2 * j + 1] - 0.5;
+      if (dx * dx + dy * dy <= r * r) want.push(j);
+    }
+    assert.deepStrictEqual([...near.ids].sort((a, b) => a - b), want);
+
+    const mesh = await client.exportTriangulation(s.name);
+    assert.strictEqual(mesh.xy.length, 2 * n);
+    assert.ok(mesh.triangles.length > 3 * n);
+
+    await assert.rejects(client.kNearest(s.name, 0, {ids: [1]}),
+                         (e) => e.code === status.INVALID_ARGUMENT);
+    await assert.rejects(client.getSession('sessions/missing'),
+                         (e) => e.code === status.NOT_FOUND);
+    const bad = await client.openSteps(s.name);
+    const d = new Float64Array(2 * n);
+    d[5] = NaN;
+    await assert.rejects(bad.moveBy(d),
+                         (e) => e.code === status.INVALID_ARGUMENT &&
+                                /deltas\[2\]\.y/.test(e.message));
+    assert.strictEqual((await client.getSession(s.name)).step, 100);
+    await client.deleteSession(s.name);
+  } finally {
+    client.close();
+    proc.kill('SIGTERM');
+  }
+});
