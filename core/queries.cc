@@ -281,25 +281,13 @@ absl::StatusOr<NeighborLists> AllNearestNeighbors(const Triangulation& t) {
     // Internal (Hilbert) order keeps memory access local; results are
     // scattered to external ids.
     ParallelFor(0, n, [&](size_t in) {
+      uint32_t best;
+      double d;
       const uint32_t ext = v.ext_of_int[in];
-      const uint32_t site = v.rep[in];
-      // Coincident points are each other's nearest (smallest other id).
-      uint32_t best = kNoVertex;
-      for (uint32_t p = site; p != kNoVertex; p = v.dup_next[p]) {
-        const uint32_t e = v.ext_of_int[p];
-        if (e != ext && e < best) best = e;
-      }
-      if (best != kNoVertex) {
+      if (NearestOtherPoint(v, static_cast<uint32_t>(in), &best, &d)) {
         nn[ext] = best;
-        return;
+        dist[ext] = d;
       }
-      const uint32_t w = FirstNeighbor(v, v.pos[site], site, false);
-      if (w == kNoVertex) return;
-      for (uint32_t p = w; p != kNoVertex; p = v.dup_next[p]) {
-        best = std::min(best, v.ext_of_int[p]);
-      }
-      nn[ext] = best;
-      dist[ext] = Distance(v.pos[site], v.pos[w]);
     });
   });
   for (uint32_t i = 0; i < n; ++i) {

@@ -2,6 +2,7 @@
 #ifndef KINETRI_CORE_QUERY_WALKS_H_
 #define KINETRI_CORE_QUERY_WALKS_H_
 
+#include <cmath>
 #include <cstdint>
 
 #include "core/hd.h"
@@ -33,6 +34,38 @@ KINETRI_HD inline uint32_t WalkToNearestSite(const TriangulationView& v,
     if (next == cur) return cur;
     cur = next;
   }
+}
+
+// The nearest other point of internal point `in` (all-points NN, one
+// element): coincident points first (distance 0, smallest external id), else
+// the first Delaunay neighbour site and its smallest external id. Returns
+// false when the point has no other point.
+KINETRI_HD inline bool NearestOtherPoint(const TriangulationView& v,
+                                         uint32_t in, uint32_t* nn_ext,
+                                         double* distance) {
+  const uint32_t ext = v.ext_of_int[in];
+  const uint32_t site = v.rep[in];
+  uint32_t best = kNoVertex;
+  for (uint32_t p = site; p != kNoVertex; p = v.dup_next[p]) {
+    const uint32_t e = v.ext_of_int[p];
+    if (e != ext && e < best) best = e;
+  }
+  if (best != kNoVertex) {
+    *nn_ext = best;
+    *distance = 0.0;
+    return true;
+  }
+  const uint32_t w = FirstNeighbor(v, v.pos[site], site, false);
+  if (w == kNoVertex) return false;
+  for (uint32_t p = w; p != kNoVertex; p = v.dup_next[p]) {
+    const uint32_t e = v.ext_of_int[p];
+    if (e < best) best = e;
+  }
+  const double dx = v.pos[site].x - v.pos[w].x;
+  const double dy = v.pos[site].y - v.pos[w].y;
+  *nn_ext = best;
+  *distance = sqrt(dx * dx + dy * dy);
+  return true;
 }
 
 }  // namespace kinetri::core
