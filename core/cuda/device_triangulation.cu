@@ -37,8 +37,7 @@ __global__ void AllNearestKernel(TriangulationView v, uint32_t* nn,
   }
 }
 
-__global__ void InvalidTrianglesKernel(MeshView m, const Vec2* pos,
-                                       uint32_t nt,
+__global__ void InvalidTrianglesKernel(MeshView m, const Vec2* pos, uint32_t nt,
                                        unsigned long long* count) {
   const uint32_t t = blockIdx.x * blockDim.x + threadIdx.x;
   if (t < nt && !rules::TriangleOk(m, pos, t)) atomicAdd(count, 1ull);
@@ -139,18 +138,18 @@ absl::StatusOr<DeviceTriangulation> DeviceTriangulation::Upload(
   d.vertex_edge = impl->vertex_edge.ptr;
   d.line = impl->line.ptr;
   d.line_rank = impl->line_rank.ptr;
-  impl->bytes = uint64_t{n} * (sizeof(Vec2) + 5 * sizeof(uint32_t) +
-                               (h.planar() ? sizeof(uint32_t) : 0)) +
-                uint64_t{h.num_sites} * sizeof(uint32_t) * (h.planar() ? 1 : 2) +
-                uint64_t{ne} * 2 * sizeof(uint32_t);
+  impl->bytes =
+      uint64_t{n} * (sizeof(Vec2) + 5 * sizeof(uint32_t) +
+                     (h.planar() ? sizeof(uint32_t) : 0)) +
+      uint64_t{h.num_sites} * sizeof(uint32_t) * (h.planar() ? 1 : 2) +
+      uint64_t{ne} * 2 * sizeof(uint32_t);
   // Device exact predicates keep large expansions on the stack.
   s = Check(cudaDeviceSetLimit(cudaLimitStackSize, 96 * 1024), "stack limit");
   if (!s.ok()) return s;
   return DeviceTriangulation(std::move(impl));
 }
 
-absl::StatusOr<NeighborLists> DeviceTriangulation::AllNearestNeighbors()
-    const {
+absl::StatusOr<NeighborLists> DeviceTriangulation::AllNearestNeighbors() const {
   const uint32_t n = impl_->view.num_points;
   NeighborLists out;
   out.offsets.assign(size_t{n} + 1, 0);
