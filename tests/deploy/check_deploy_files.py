@@ -34,6 +34,17 @@ class DeployFilesTest(unittest.TestCase):
         self.assertIn("FROM debian:bookworm", text)
         self.assertTrue((ROOT / "scripts" / "setup.sh").exists())
 
+    def test_cuda_variant(self):
+        text = (DEPLOY / "Dockerfile.cuda").read_text()
+        self.assertIn("bash scripts/setup.sh", text)
+        self.assertIn("-DKINETRI_CUDA=ON", text)
+        docs = list(yaml.safe_load_all(
+            (DEPLOY / "k8s-cuda" / "kinetri-cuda.yaml").read_text()))
+        sts = next(d for d in docs if d["kind"] == "StatefulSet")
+        container = sts["spec"]["template"]["spec"]["containers"][0]
+        self.assertEqual(container["resources"]["limits"]["nvidia.com/gpu"], 1)
+        self.assertEqual(container["image"], "kinetri-server:cuda")
+
     def test_k8s_probes_use_grpc_health(self):
         docs = list(yaml.safe_load_all((DEPLOY / "k8s" / "kinetri.yaml").read_text()))
         kinds = {d["kind"] for d in docs}
