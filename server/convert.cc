@@ -22,11 +22,17 @@ absl::Status StepAssembler::Add(const v1::StepRequest& chunk) {
       chunk.mode() == v1::DISPLACEMENT_MODE_UNSPECIFIED
           ? v1::DISPLACEMENT_MODE_DELTA
           : chunk.mode();
-  const bool sparse = chunk.ids_size() > 0;
+  if (chunk.ids_size() > 0 && chunk.client_ids_size() > 0) {
+    return absl::InvalidArgumentError(
+        "ids, client_ids: a chunk names points with one of them, not both");
+  }
+  const bool client = chunk.client_ids_size() > 0;
+  const bool sparse = chunk.ids_size() > 0 || client;
   if (chunks_ == 0) {
     step_ = chunk.step();
     mode_ = mode;
     sparse_ = sparse;
+    client_ = client;
   } else {
     if (chunk.step() != step_) {
       return absl::InvalidArgumentError(
@@ -46,18 +52,33 @@ absl::Status StepAssembler::Add(const v1::StepRequest& chunk) {
   absl::Status s = AppendPoints(chunk.xy(), "xy", &values_);
   if (!s.ok()) return s;
   if (sparse_) {
-    if (static_cast<size_t>(chunk.ids_size()) != values_.size() - before) {
+    if (client != client_) {
       return absl::InvalidArgumentError(
-          absl::StrCat("ids: ", chunk.ids_size(), " ids for ",
+          "client_ids: every chunk of a step uses the same kind of ids");
+    }
+    const size_t named = client ? chunk.client_ids_size() : chunk.ids_size();
+    if (named != values_.size() - before) {
+      return absl::InvalidArgumentError(
+          absl::StrCat(client ? "client_ids: " : "ids: ", named, " ids for ",
                        values_.size() - before, " xy pairs in a chunk"));
     }
-    ids_.insert(ids_.end(), chunk.ids().begin(), chunk.ids().end());
+    if (client) {
+      client_ids_.insert(client_ids_.end(), chunk.client_ids().begin(),
+                         chunk.client_ids().end());
+    } else {
+      ids_.insert(ids_.end(), chunk.ids().begin(), chunk.ids().end());
+    }
   }
   ++chunks_;
   return absl::OkStatus();
 }
 
-core::DisplacementBatch StepAssembler::Take() {
+absl::StatusOr<core::DisplacementBatch> StepAssembler::Take(
+    const Session& session) {
+  const bool client = client_;
+  std::vector<uint64_t> client_ids = std::move(client_ids_);
+  client_ids_.clear();
+  client_ = false;
   core::DisplacementBatch b;
   b.mode = mode_ == v1::DISPLACEMENT_MODE_ABSOLUTE
                ? core::DisplacementBatch::Mode::kAbsolute
@@ -67,7 +88,49 @@ core::DisplacementBatch StepAssembler::Take() {
   ids_.clear();
   values_.clear();
   chunks_ = 0;
+  if (client && !session.has_client_ids()) {
+    return absl::InvalidArgumentError(
+        "client_ids: this session numbers points sequentially; use ids");
+  }
+  if (!b.ids.empty() && session.has_client_ids()) {
+    return absl::InvalidArgumentError(
+        "ids: this session uses client ids (POINT_ID_POLICY_CLIENT); use "
+        "client_ids");
+  }
+  if (client) {
+    b.ids.resize(client_ids.size());
+    for (size_t i = 0; i < client_ids.size(); ++i) {
+      auto in =
+          session.IndexOf(client_ids[i], absl::StrCat("client_ids[", i, "]"));
+      if (!in.ok()) return in.status();
+      b.ids[i] = *in;
+    }
+  }
   return b;
+}
+
+absl::StatusOr<std::vector<uint32_t>> ResolvePointIds(const v1::PointIds& ids,
+                                                      const Session& session) {
+  if (session.has_client_ids()) {
+    if (ids.ids_size() > 0) {
+      return absl::InvalidArgumentError(
+          "point_ids.ids: this session uses client ids; use "
+          "point_ids.client_ids");
+    }
+    std::vector<uint32_t> out(ids.client_ids_size());
+    for (int i = 0; i < ids.client_ids_size(); ++i) {
+      auto in = session.IndexOf(ids.client_ids(i),
+                                absl::StrCat("point_ids.client_ids[", i, "]"));
+      if (!in.ok()) return in.status();
+      out[i] = *in;
+    }
+    return out;
+  }
+  if (ids.client_ids_size() > 0) {
+    return absl::InvalidArgumentError(
+        "point_ids.client_ids: this session numbers points sequentially");
+  }
+  return std::vector<uint32_t>(ids.ids().begin(), ids.ids().end());
 }
 
 v1::StepStats ToProto(const core::StepReport& r) {
@@ -85,9 +148,9 @@ v1::StepStats ToProto(const core::StepReport& r) {
   return s;
 }
 
-std::vector<v1::QueryResponse> ToChunks(const core::NeighborLists& lists,
-                                        uint64_t step, bool distances,
-                                        uint32_t rows_per_chunk) {
+std::vector<v1::QueryResponse> ToChunks(
+    const core::NeighborLists& lists, uint64_t step, bool distances,
+    uint32_t rows_per_chunk, const std::vector<uint64_t>* client_ids) {
   const uint64_t rows = lists.num_queries();
   std::vector<v1::QueryResponse> out;
   if (rows_per_chunk == 0) rows_per_chunk = 1;
@@ -104,7 +167,13 @@ std::vector<v1::QueryResponse> ToChunks(const core::NeighborLists& lists,
         r.add_offsets(lists.offsets[i] - base);
       }
       const uint64_t end = lists.offsets[last];
-      r.mutable_ids()->Add(lists.ids.begin() + base, lists.ids.begin() + end);
+      if (client_ids != nullptr) {
+        for (uint64_t k = base; k < end; ++k) {
+          r.add_client_ids((*client_ids)[lists.ids[k]]);
+        }
+      } else {
+        r.mutable_ids()->Add(lists.ids.begin() + base, lists.ids.begin() + end);
+      }
       if (distances) {
         r.mutable_distances()->Add(lists.distances.begin() + base,
                                    lists.distances.begin() + end);

@@ -11,6 +11,7 @@
 #include "core/queries.h"
 #include "core/triangulation.h"
 #include "kinetri/v1/kinetri.pb.h"
+#include "server/session_registry.h"
 
 namespace kinetri::server {
 
@@ -27,24 +28,34 @@ class StepAssembler {
   absl::Status Add(const v1::StepRequest& chunk);
   bool empty() const { return chunks_ == 0; }
   uint64_t step() const { return step_; }
-  // The assembled batch; resets the assembler.
-  core::DisplacementBatch Take();
+  // The assembled batch, with client ids resolved through `session`
+  // (NOT_FOUND for an unknown one, INVALID_ARGUMENT for the wrong kind of
+  // ids for its policy); resets the assembler.
+  absl::StatusOr<core::DisplacementBatch> Take(const Session& session);
 
  private:
   uint64_t chunks_ = 0;
   uint64_t step_ = 0;
   bool sparse_ = false;
   v1::DisplacementMode mode_ = v1::DISPLACEMENT_MODE_DELTA;
+  bool client_ = false;
   std::vector<uint32_t> ids_;
+  std::vector<uint64_t> client_ids_;
   std::vector<core::Vec2> values_;
 };
 
 v1::StepStats ToProto(const core::StepReport& report);
 
 // Splits CSR rows [0, n) into response chunks of at most `rows_per_chunk`.
-std::vector<v1::QueryResponse> ToChunks(const core::NeighborLists& lists,
-                                        uint64_t step, bool distances,
-                                        uint32_t rows_per_chunk);
+// With client_ids, result ids are reported as the client's ids.
+std::vector<v1::QueryResponse> ToChunks(
+    const core::NeighborLists& lists, uint64_t step, bool distances,
+    uint32_t rows_per_chunk, const std::vector<uint64_t>* client_ids);
+
+// Query targets of a PointIds message for `session` (sequential or client
+// ids, per its policy).
+absl::StatusOr<std::vector<uint32_t>> ResolvePointIds(const v1::PointIds& ids,
+                                                      const Session& session);
 
 }  // namespace kinetri::server
 

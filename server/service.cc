@@ -5,6 +5,7 @@
 #include <mutex>
 #include <shared_mutex>
 
+#include "absl/container/flat_hash_map.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "core/queries.h"
@@ -83,6 +84,9 @@ v1::Session Describe(Session& s) {
   out.mutable_options()->set_backend(s.backend() == "cuda" ? v1::BACKEND_CUDA
                                                            : v1::BACKEND_CPU);
   out.mutable_options()->set_threads(s.threads());
+  out.mutable_options()->set_point_id_policy(
+      s.has_client_ids() ? v1::POINT_ID_POLICY_CLIENT
+                         : v1::POINT_ID_POLICY_SEQUENTIAL);
   out.mutable_options()->set_max_query_results(s.max_query_results());
   *out.mutable_create_time() = ToTimestamp(s.create_time());
   *out.mutable_update_time() = ToTimestamp(s.update_time());
@@ -125,8 +129,12 @@ grpc::Status KinetriServiceImpl::CreateSession(
         "header.options.backend: this server has no CUDA backend (built "
         "without it or no GPU present); use BACKEND_AUTO or BACKEND_CPU"));
   }
+  const bool client_ids =
+      header.options().point_id_policy() == v1::POINT_ID_POLICY_CLIENT;
   std::vector<core::Vec2> points;
   points.reserve(header.point_count());
+  std::vector<uint64_t> ids;
+  if (client_ids) ids.reserve(header.point_count());
   uint64_t chunk = 0;
   while (reader->Read(&msg)) {
     if (ctx->IsCancelled()) {
@@ -138,9 +146,27 @@ grpc::Status KinetriServiceImpl::CreateSession(
                        absl::StrCat("points: message ", chunk + 1,
                                     " after the header carries no points")));
     }
+    const size_t before = points.size();
     st = AppendPoints(msg.points().xy(), absl::StrCat("points[", chunk, "].xy"),
                       &points);
     if (!st.ok()) return rpc.Done(ToGrpc(st));
+    if (client_ids) {
+      if (static_cast<size_t>(msg.points().ids_size()) !=
+          points.size() - before) {
+        return rpc.Done(grpc::Status(
+            grpc::StatusCode::INVALID_ARGUMENT,
+            absl::StrCat("points[", chunk, "].ids: ", msg.points().ids_size(),
+                         " ids for ", points.size() - before,
+                         " points (POINT_ID_POLICY_CLIENT names each point)")));
+      }
+      ids.insert(ids.end(), msg.points().ids().begin(),
+                 msg.points().ids().end());
+    } else if (msg.points().ids_size() > 0) {
+      return rpc.Done(grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                                   absl::StrCat("points[", chunk,
+                                                "].ids: set only with "
+                                                "POINT_ID_POLICY_CLIENT")));
+    }
     if (points.size() > header.point_count()) {
       return rpc.Done(
           grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
@@ -155,6 +181,19 @@ grpc::Status KinetriServiceImpl::CreateSession(
         absl::StrCat("points: ", points.size(), " points sent, header says ",
                      header.point_count())));
   }
+  if (client_ids) {
+    absl::flat_hash_map<uint64_t, uint64_t> seen;
+    seen.reserve(ids.size());
+    for (uint64_t i = 0; i < ids.size(); ++i) {
+      auto [it, fresh] = seen.emplace(ids[i], i);
+      if (!fresh) {
+        return rpc.Done(grpc::Status(
+            grpc::StatusCode::INVALID_ARGUMENT,
+            absl::StrCat("points.ids: id ", ids[i], " given to points ",
+                         it->second, " and ", i)));
+      }
+    }
+  }
   core::TriangulationOptions opt;
   const uint32_t threads = header.options().threads()
                                ? header.options().threads()
@@ -167,8 +206,8 @@ grpc::Status KinetriServiceImpl::CreateSession(
           ? std::min(header.options().max_query_results(),
                      registry_->limits().max_query_results)
           : registry_->limits().max_query_results;
-  auto session = std::make_shared<Session>(id, std::move(*tri), "cpu",
-                                           max_results, threads);
+  auto session = std::make_shared<Session>(
+      id, std::move(*tri), "cpu", max_results, threads, std::move(ids));
   auto added = registry_->Add(session);
   if (!added.ok()) return rpc.Done(ToGrpc(added.status()));
   {
@@ -256,7 +295,8 @@ grpc::Status KinetriServiceImpl::StreamSteps(
     if (!st.ok()) return rpc.Done(ToGrpc(st));
     if (!req.end_of_step()) continue;
     const uint64_t step = assembler.step();
-    core::DisplacementBatch batch = assembler.Take();
+    absl::StatusOr<core::DisplacementBatch> batch = assembler.Take(*session);
+    if (!batch.ok()) return rpc.Done(ToGrpc(batch.status()));
     v1::StepResponse resp;
     {
       std::unique_lock lock(session->mutex());
@@ -266,7 +306,7 @@ grpc::Status KinetriServiceImpl::StreamSteps(
             absl::StrCat("step: got ", step, ", expected ", session->step() + 1,
                          " (steps apply in order)")));
       }
-      auto report = session->tri().ApplyDisplacements(batch);
+      auto report = session->tri().ApplyDisplacements(*batch);
       if (!report.ok()) return rpc.Done(ToGrpc(report.status()));
       session->set_step(step);
       metrics_->ObserveStep(session->backend(), *report);
@@ -337,7 +377,9 @@ grpc::Status KinetriServiceImpl::Query(
       ids.resize(t.size());
       for (uint32_t i = 0; i < t.size(); ++i) ids[i] = i;
     } else if (req->has_point_ids()) {
-      ids.assign(req->point_ids().ids().begin(), req->point_ids().ids().end());
+      auto resolved = ResolvePointIds(req->point_ids(), session);
+      if (!resolved.ok()) return rpc.Done(ToGrpc(resolved.status()));
+      ids = std::move(*resolved);
     }
     const bool by_id = !req->has_positions();
     const int k = req->kind() == v1::QUERY_KIND_K_NEAREST ? req->k() : 1;
@@ -378,7 +420,8 @@ grpc::Status KinetriServiceImpl::Query(
   const uint32_t rows_per_chunk =
       req->rows_per_chunk() ? req->rows_per_chunk() : 16384;
   for (auto& chunk :
-       ToChunks(*result, step, req->include_distances(), rows_per_chunk)) {
+       ToChunks(*result, step, req->include_distances(), rows_per_chunk,
+                session.has_client_ids() ? &session.client_ids() : nullptr)) {
     if (ctx->IsCancelled()) {
       return rpc.Done(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled"));
     }
@@ -415,9 +458,11 @@ grpc::Status KinetriServiceImpl::ExportTriangulation(
     r.set_total_points(pos.size());
     r.set_total_triangles(tris.size());
     const size_t pend = std::min(pos.size(), p + per);
+    const auto& cids = (*s)->client_ids();
     for (; p < pend; ++p) {
       r.add_xy(pos[p].x);
       r.add_xy(pos[p].y);
+      if (!cids.empty()) r.add_point_ids(cids[p]);
     }
     const size_t tend = std::min(tris.size(), t + per);
     for (; t < tend; ++t) {

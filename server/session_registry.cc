@@ -8,15 +8,32 @@
 namespace kinetri::server {
 
 Session::Session(std::string id, core::Triangulation tri, std::string backend,
-                 uint64_t max_query_results, uint32_t threads)
+                 uint64_t max_query_results, uint32_t threads,
+                 std::vector<uint64_t> client_ids)
     : id_(std::move(id)),
       backend_(std::move(backend)),
       max_query_results_(max_query_results),
       threads_(threads),
       create_time_(absl::Now()),
       point_count_(tri.size()),
+      client_ids_(std::move(client_ids)),
       tri_(std::move(tri)),
-      update_time_(create_time_) {}
+      update_time_(create_time_) {
+  index_of_.reserve(client_ids_.size());
+  for (uint32_t i = 0; i < client_ids_.size(); ++i) {
+    index_of_.emplace(client_ids_[i], i);
+  }
+}
+
+absl::StatusOr<uint32_t> Session::IndexOf(uint64_t client_id,
+                                          const std::string& field) const {
+  auto it = index_of_.find(client_id);
+  if (it == index_of_.end()) {
+    return absl::NotFoundError(
+        absl::StrCat(field, " = ", client_id, ": no such point"));
+  }
+  return it->second;
+}
 
 bool ValidSessionId(const std::string& id) {
   if (id.empty() || id.size() > 63) return false;

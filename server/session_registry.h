@@ -9,6 +9,7 @@
 #include <string>
 #include <vector>
 
+#include "absl/container/flat_hash_map.h"
 #include "absl/status/statusor.h"
 #include "absl/synchronization/mutex.h"
 #include "absl/time/time.h"
@@ -28,8 +29,10 @@ struct ServerLimits {
 // it shared and run concurrently.
 class Session {
  public:
+  // client_ids: empty for sequential ids, else one distinct id per point.
   Session(std::string id, core::Triangulation tri, std::string backend,
-          uint64_t max_query_results, uint32_t threads);
+          uint64_t max_query_results, uint32_t threads,
+          std::vector<uint64_t> client_ids = {});
 
   const std::string& id() const { return id_; }
   std::string name() const { return "sessions/" + id_; }
@@ -38,6 +41,13 @@ class Session {
   uint32_t threads() const { return threads_; }
   absl::Time create_time() const { return create_time_; }
   uint64_t point_count() const { return point_count_; }
+
+  // POINT_ID_POLICY_CLIENT: the client's id of each point and back.
+  bool has_client_ids() const { return !client_ids_.empty(); }
+  const std::vector<uint64_t>& client_ids() const { return client_ids_; }
+  // NOT_FOUND naming `field` when the id is unknown.
+  absl::StatusOr<uint32_t> IndexOf(uint64_t client_id,
+                                   const std::string& field) const;
 
   std::shared_mutex& mutex() { return mu_; }
   // Guarded by mutex().
@@ -56,6 +66,8 @@ class Session {
   const uint32_t threads_;
   const absl::Time create_time_;
   const uint64_t point_count_;
+  const std::vector<uint64_t> client_ids_;
+  absl::flat_hash_map<uint64_t, uint32_t> index_of_;
   std::shared_mutex mu_;
   core::Triangulation tri_;
   uint64_t step_ = 0;

@@ -26,6 +26,18 @@ Client::Client(const std::string& target, size_t chunk_points)
 absl::StatusOr<v1::Session> Client::CreateSession(
     const std::vector<double>& xy, const v1::SessionOptions& options,
     const std::string& session_id) {
+  return CreateSessionWithIds(xy, {}, options, session_id);
+}
+
+absl::StatusOr<v1::Session> Client::CreateSessionWithIds(
+    const std::vector<double>& xy, const std::vector<uint64_t>& client_ids,
+    v1::SessionOptions options, const std::string& session_id) {
+  if (!client_ids.empty()) {
+    options.set_point_id_policy(v1::POINT_ID_POLICY_CLIENT);
+    if (client_ids.size() * 2 != xy.size()) {
+      return absl::InvalidArgumentError("client_ids: one id per point");
+    }
+  }
   if (xy.size() % 2) {
     return absl::InvalidArgumentError("xy: odd number of coordinates");
   }
@@ -42,6 +54,10 @@ absl::StatusOr<v1::Session> Client::CreateSession(
     v1::CreateSessionRequest chunk;
     const size_t end = std::min(xy.size(), i + step);
     chunk.mutable_points()->mutable_xy()->Add(xy.begin() + i, xy.begin() + end);
+    if (!client_ids.empty()) {
+      chunk.mutable_points()->mutable_ids()->Add(client_ids.begin() + i / 2,
+                                                 client_ids.begin() + end / 2);
+    }
     ok = writer->Write(chunk);
   }
   writer->WritesDone();
@@ -101,12 +117,14 @@ absl::StatusOr<Neighbors> Client::Query(const v1::QueryRequest& request) {
   v1::QueryResponse chunk;
   while (reader->Read(&chunk)) {
     out.step = chunk.step();
-    const uint64_t base = out.ids.size();
+    const uint64_t base = out.ids.size() + out.client_ids.size();
     const uint64_t row0 = out.offsets.size() - 1;
     for (int i = 1; i < chunk.offsets_size(); ++i) {
       out.offsets.push_back(base + chunk.offsets(i));
     }
     out.ids.insert(out.ids.end(), chunk.ids().begin(), chunk.ids().end());
+    out.client_ids.insert(out.client_ids.end(), chunk.client_ids().begin(),
+                          chunk.client_ids().end());
     out.distances.insert(out.distances.end(), chunk.distances().begin(),
                          chunk.distances().end());
     for (uint32_t r : chunk.truncated_rows()) {
@@ -188,6 +206,8 @@ absl::StatusOr<Mesh> Client::Export(const std::string& name) {
     mesh.xy.insert(mesh.xy.end(), chunk.xy().begin(), chunk.xy().end());
     mesh.triangles.insert(mesh.triangles.end(), chunk.triangles().begin(),
                           chunk.triangles().end());
+    mesh.point_ids.insert(mesh.point_ids.end(), chunk.point_ids().begin(),
+                          chunk.point_ids().end());
   }
   const grpc::Status st = reader->Finish();
   if (!st.ok()) return FromGrpc(st);
@@ -219,6 +239,11 @@ absl::StatusOr<v1::StepResponse> StepStream::MoveBy(
   return Send(v1::DISPLACEMENT_MODE_DELTA, ids, dxy);
 }
 
+absl::StatusOr<v1::StepResponse> StepStream::MoveByClientIds(
+    const std::vector<uint64_t>& client_ids, const std::vector<double>& dxy) {
+  return Send(v1::DISPLACEMENT_MODE_DELTA, {}, dxy, &client_ids);
+}
+
 absl::StatusOr<v1::StepResponse> StepStream::MoveTo(
     const std::vector<uint32_t>& ids, const std::vector<double>& xy) {
   return Send(v1::DISPLACEMENT_MODE_ABSOLUTE, ids, xy);
@@ -226,8 +251,11 @@ absl::StatusOr<v1::StepResponse> StepStream::MoveTo(
 
 absl::StatusOr<v1::StepResponse> StepStream::Send(
     v1::DisplacementMode mode, const std::vector<uint32_t>& ids,
-    const std::vector<double>& xy) {
+    const std::vector<double>& xy, const std::vector<uint64_t>* client_ids) {
   if (finished_) return absl::FailedPreconditionError("stream finished");
+  if (client_ids != nullptr && client_ids->size() * 2 != xy.size()) {
+    return absl::InvalidArgumentError("xy: one (x, y) pair per client id");
+  }
   if (!ids.empty() && ids.size() * 2 != xy.size()) {
     return absl::InvalidArgumentError(
         absl::StrCat("xy: ", xy.size(), " values for ", ids.size(), " ids"));
@@ -244,6 +272,10 @@ absl::StatusOr<v1::StepResponse> StepStream::Send(
     req.mutable_xy()->Add(xy.begin() + i, xy.begin() + end);
     if (!ids.empty()) {
       req.mutable_ids()->Add(ids.begin() + i / 2, ids.begin() + end / 2);
+    }
+    if (client_ids != nullptr) {
+      req.mutable_client_ids()->Add(client_ids->begin() + i / 2,
+                                    client_ids->begin() + end / 2);
     }
     req.set_end_of_step(end == xy.size());
     i = end;

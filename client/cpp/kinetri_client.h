@@ -23,13 +23,16 @@ struct Neighbors {
   std::vector<uint32_t> ids;
   std::vector<double> distances;  // empty unless requested
   std::vector<uint64_t> truncated_rows;
+  // POINT_ID_POLICY_CLIENT sessions: neighbours as client ids (ids empty).
+  std::vector<uint64_t> client_ids;
   size_t rows() const { return offsets.empty() ? 0 : offsets.size() - 1; }
 };
 
 struct Mesh {
   uint64_t step = 0;
   std::vector<double> xy;           // interleaved positions, by id
-  std::vector<uint32_t> triangles;  // id triples, counter-clockwise
+  std::vector<uint32_t> triangles;  // index triples, counter-clockwise
+  std::vector<uint64_t> point_ids;  // client ids of the positions, if any
 };
 
 // Sends one batch per simulation step on a long-lived stream.
@@ -44,6 +47,10 @@ class StepStream {
   // Sparse displacements.
   absl::StatusOr<v1::StepResponse> MoveBy(const std::vector<uint32_t>& ids,
                                           const std::vector<double>& dxy);
+  // Sparse displacements naming points by client id
+  // (POINT_ID_POLICY_CLIENT sessions).
+  absl::StatusOr<v1::StepResponse> MoveByClientIds(
+      const std::vector<uint64_t>& client_ids, const std::vector<double>& dxy);
   // Absolute positions (dense if ids is empty).
   absl::StatusOr<v1::StepResponse> MoveTo(const std::vector<uint32_t>& ids,
                                           const std::vector<double>& xy);
@@ -52,9 +59,10 @@ class StepStream {
   uint64_t next_step() const { return next_step_; }
 
  private:
-  absl::StatusOr<v1::StepResponse> Send(v1::DisplacementMode mode,
-                                        const std::vector<uint32_t>& ids,
-                                        const std::vector<double>& xy);
+  absl::StatusOr<v1::StepResponse> Send(
+      v1::DisplacementMode mode, const std::vector<uint32_t>& ids,
+      const std::vector<double>& xy,
+      const std::vector<uint64_t>* client_ids = nullptr);
   grpc::ClientContext ctx_;
   std::unique_ptr<grpc::ClientReaderWriter<v1::StepRequest, v1::StepResponse>>
       stream_;
@@ -72,6 +80,10 @@ class Client {
   absl::StatusOr<v1::Session> CreateSession(const std::vector<double>& xy,
                                             const v1::SessionOptions& options,
                                             const std::string& session_id = "");
+  // POINT_ID_POLICY_CLIENT: names point i `client_ids[i]`.
+  absl::StatusOr<v1::Session> CreateSessionWithIds(
+      const std::vector<double>& xy, const std::vector<uint64_t>& client_ids,
+      v1::SessionOptions options, const std::string& session_id = "");
   absl::StatusOr<v1::Session> GetSession(const std::string& name);
   absl::StatusOr<std::vector<v1::Session>> ListSessions();
   absl::Status DeleteSession(const std::string& name);

@@ -302,6 +302,69 @@ TEST_F(E2eTest, ConcurrentSessionsStayIndependent) {
   }
 }
 
+TEST_F(E2eTest, ClientIdPolicy) {
+  const size_t n = 2000;
+  std::vector<double> xy = Uniform(n, 50);
+  std::vector<uint64_t> cid(n);
+  for (size_t i = 0; i < n; ++i) cid[i] = 1'000'000'007ull * (i + 3) + 11;
+  auto s = client_->CreateSessionWithIds(xy, cid, v1::SessionOptions(), "cids");
+  ASSERT_TRUE(s.ok()) << s.status();
+  EXPECT_EQ(s->options().point_id_policy(), v1::POINT_ID_POLICY_CLIENT);
+  // Move ten points named by client id.
+  auto st = client_->OpenSteps(s->name());
+  std::vector<uint64_t> moved;
+  std::vector<double> d;
+  for (size_t i = 0; i < 10; ++i) {
+    moved.push_back(cid[i * 37]);
+    d.push_back(0.001 * (i + 1));
+    d.push_back(-0.0005 * i);
+    xy[2 * i * 37] += d[2 * i];
+    xy[2 * i * 37 + 1] += d[2 * i + 1];
+  }
+  ASSERT_TRUE((*st)->MoveByClientIds(moved, d).ok());
+  // Unknown client id and sequential ids are refused; nothing changes.
+  auto bad = (*st)->MoveByClientIds({42}, {0.1, 0.1});
+  EXPECT_EQ(bad.status().code(), absl::StatusCode::kNotFound);
+  EXPECT_NE(bad.status().message().find("client_ids[0] = 42"),
+            std::string::npos);
+  auto st2 = client_->OpenSteps(s->name());
+  EXPECT_EQ((*st2)->MoveBy({1}, {0.1, 0.1}).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(client_->GetSession(s->name())->step(), 1u);
+  // k-NN of points named by client id; answers in client ids.
+  v1::QueryRequest q;
+  q.set_session(s->name());
+  q.set_kind(v1::QUERY_KIND_K_NEAREST);
+  q.set_k(3);
+  q.set_exclude_self(true);
+  for (size_t i = 0; i < n; i += 101)
+    q.mutable_point_ids()->add_client_ids(cid[i]);
+  auto res = client_->Query(q);
+  ASSERT_TRUE(res.ok()) << res.status();
+  EXPECT_TRUE(res->ids.empty());
+  size_t row = 0;
+  for (size_t i = 0; i < n; i += 101, ++row) {
+    auto want = Rank(xy, At(xy, i), i);
+    std::vector<uint64_t> want_c;
+    for (int k = 0; k < 3; ++k) want_c.push_back(cid[want[k]]);
+    std::vector<uint64_t> got(res->client_ids.begin() + res->offsets[row],
+                              res->client_ids.begin() + res->offsets[row + 1]);
+    ASSERT_EQ(got, want_c) << "row " << row;
+  }
+  auto mesh = client_->Export(s->name());
+  ASSERT_TRUE(mesh.ok());
+  EXPECT_EQ(mesh->point_ids, cid);
+  EXPECT_EQ(mesh->xy, xy);
+  // Duplicate client ids are refused at creation.
+  std::vector<uint64_t> dup = {5, 6, 5};
+  EXPECT_EQ(
+      client_
+          ->CreateSessionWithIds({0, 0, 1, 0, 0, 1}, dup, v1::SessionOptions())
+          .status()
+          .code(),
+      absl::StatusCode::kInvalidArgument);
+}
+
 TEST_F(E2eTest, MetricsMove) {
   const std::string before =
       testing::HttpGet(server_->metrics_port(), "/metrics");
