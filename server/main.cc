@@ -34,6 +34,10 @@ ABSL_FLAG(int, threads, 0,
           "worker threads per session on the CPU backend (0: all cores)");
 ABSL_FLAG(int, shutdown_grace_seconds, 10,
           "on SIGTERM/SIGINT: how long running calls may finish");
+ABSL_FLAG(double, drain_delay_seconds, 0.0,
+          "on SIGTERM/SIGINT: report NOT_SERVING on the health service for "
+          "this long, still accepting calls, before shutting down (lets load "
+          "balancers and readiness probes notice)");
 
 namespace {
 std::atomic<bool> g_stop{false};
@@ -96,6 +100,8 @@ int main(int argc, char** argv) {
   std::printf("kinetri-server: draining\n");
   std::fflush(stdout);
   server->GetHealthCheckService()->SetServingStatus(false);
+  std::this_thread::sleep_for(
+      std::chrono::duration<double>(absl::GetFlag(FLAGS_drain_delay_seconds)));
   server->Shutdown(
       std::chrono::system_clock::now() +
       std::chrono::seconds(absl::GetFlag(FLAGS_shutdown_grace_seconds)));

@@ -35,7 +35,8 @@ function wrap(promiseFn) {
 }
 
 class StepStream {
-  constructor(stub, session, firstStep) {
+  constructor(stub, session, firstStep, chunkValues = CHUNK_VALUES) {
+    this.chunkValues = chunkValues;
     this.session = session;
     this.nextStep = firstStep;
     this.call = stub.StreamSteps();
@@ -67,8 +68,8 @@ class StepStream {
     const result = new Promise((resolve, reject) => {
       this.pending.push({resolve, reject});
     });
-    for (let i = 0; ; i += CHUNK_VALUES) {
-      const end = Math.min(xy.length, i + CHUNK_VALUES);
+    for (let i = 0; ; i += this.chunkValues) {
+      const end = Math.min(xy.length, i + this.chunkValues);
       const req = {session: this.session, step: this.nextStep, mode,
                    xy: xy.slice(i, end), endOfStep: end === xy.length};
       if (ids) req.ids = Array.from(ids).slice(i / 2, end / 2);
@@ -89,7 +90,9 @@ class StepStream {
 }
 
 class Client {
-  constructor(target = '127.0.0.1:50051') {
+  // chunkPoints: points per message when uploading (default 131072).
+  constructor(target = '127.0.0.1:50051', {chunkPoints = CHUNK_VALUES / 2} = {}) {
+    this.chunkValues = 2 * chunkPoints;
     const Service = loadService();
     this.stub = new Service(target, grpc.credentials.createInsecure(), {
       'grpc.max_receive_message_length': 64 << 20,
@@ -102,8 +105,8 @@ class Client {
     return wrap((cb) => {
       const call = this.stub.CreateSession(cb);
       call.write({header: {sessionId, pointCount: xy.length / 2, options: {}}});
-      for (let i = 0; i < xy.length; i += CHUNK_VALUES) {
-        call.write({points: {xy: Array.from(xy.slice(i, i + CHUNK_VALUES))}});
+      for (let i = 0; i < xy.length; i += this.chunkValues) {
+        call.write({points: {xy: Array.from(xy.slice(i, i + this.chunkValues))}});
       }
       call.end();
     });
@@ -116,7 +119,7 @@ class Client {
 
   async openSteps(name) {
     const s = await this.getSession(name);
-    return new StepStream(this.stub, name, s.step + 1);
+    return new StepStream(this.stub, name, s.step + 1, this.chunkValues);
   }
 
   query(request) {

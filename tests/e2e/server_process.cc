@@ -64,6 +64,10 @@ int ServerProcess::Stop() {
   return status;
 }
 
+void ServerProcess::Signal(int sig) {
+  if (pid_ > 0) kill(pid_, sig);
+}
+
 ServerProcess::~ServerProcess() { Stop(); }
 
 std::string HttpGet(int port, const std::string& path) {

@@ -24,6 +24,8 @@ class ServerProcess {
   int metrics_port() const { return metrics_port_; }
   // Sends SIGTERM and returns the exit status.
   int Stop();
+  // Sends a signal without waiting.
+  void Signal(int sig);
 
  private:
   pid_t pid_ = -1;

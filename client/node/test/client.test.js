@@ -27,7 +27,7 @@ function rng(seed) {
 
 test('create, step, query against brute force, export, errors', async () => {
   const {proc, target} = await startServer();
-  const client = new Client(target);
+  const client = new Client(target, {chunkPoints: 400});  // force chunking
   try {
     const rand = rng(7);
     const n = 1500;
@@ -65,6 +65,17 @@ test('create, step, query against brute force, export, errors', async () => {
       if (dx * dx + dy * dy <= r * r) want.push(j);
     }
     assert.deepStrictEqual([...near.ids].sort((a, b) => a - b), want);
+
+    const knn = await client.kNearest(s.name, 4, {ids: [0, 500, 1000]});
+    [0, 500, 1000].forEach((i, row) => {
+      const order = [...Array(n).keys()].filter((j) => j !== i).sort((a, b) => {
+        const da = (xy[2 * a] - xy[2 * i]) ** 2 + (xy[2 * a + 1] - xy[2 * i + 1]) ** 2;
+        const db = (xy[2 * b] - xy[2 * i]) ** 2 + (xy[2 * b + 1] - xy[2 * i + 1]) ** 2;
+        return da - db;
+      });
+      assert.deepStrictEqual(knn.ids.slice(knn.offsets[row], knn.offsets[row + 1]),
+                             order.slice(0, 4));
+    });
 
     const mesh = await client.exportTriangulation(s.name);
     assert.strictEqual(mesh.xy.length, 2 * n);

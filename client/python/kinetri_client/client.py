@@ -52,7 +52,9 @@ class Neighbors:
 class StepStream:
     """One long-lived stream; each call applies one step and returns its stats."""
 
-    def __init__(self, stub, session: str, first_step: int):
+    def __init__(self, stub, session: str, first_step: int,
+                 chunk_points: int = _CHUNK_POINTS):
+        self._chunk_points = chunk_points
         self._session = session
         self._next = first_step
         self._requests: List[pb.StepRequest] = []
@@ -74,7 +76,7 @@ class StepStream:
         id_arr = None if ids is None else np.asarray(ids, dtype=np.uint32)
         if id_arr is not None and 2 * len(id_arr) != len(flat):
             raise ValueError("one (x, y) pair per id")
-        step = 2 * _CHUNK_POINTS
+        step = 2 * self._chunk_points
         start = 0
         while True:
             end = min(len(flat), start + step)
@@ -128,7 +130,9 @@ class _RequestQueue:
 class Client:
     """Connects to a kinetri-server at `target` ("host:port")."""
 
-    def __init__(self, target: str = "127.0.0.1:50051"):
+    def __init__(self, target: str = "127.0.0.1:50051",
+                 chunk_points: int = _CHUNK_POINTS):
+        self._chunk_points = chunk_points
         self._channel = grpc.insecure_channel(
             target, options=[("grpc.max_receive_message_length", 64 << 20)])
         self._stub = pb_grpc.KinetriServiceStub(self._channel)
@@ -151,9 +155,10 @@ class Client:
             yield pb.CreateSessionRequest(header=pb.CreateSessionHeader(
                 session_id=session_id, point_count=len(flat) // 2,
                 options=pb.SessionOptions(threads=threads)))
-            for i in range(0, len(flat), 2 * _CHUNK_POINTS):
+            step = 2 * self._chunk_points
+            for i in range(0, len(flat), step):
                 yield pb.CreateSessionRequest(points=pb.PointChunk(
-                    xy=flat[i:i + 2 * _CHUNK_POINTS].tolist()))
+                    xy=flat[i:i + step].tolist()))
 
         try:
             return self._stub.CreateSession(requests())
@@ -186,7 +191,8 @@ class Client:
             _raise(e)
 
     def open_steps(self, name: str) -> StepStream:
-        return StepStream(self._stub, name, self.get_session(name).step + 1)
+        return StepStream(self._stub, name, self.get_session(name).step + 1,
+                          self._chunk_points)
 
     # Queries ----------------------------------------------------------------
     def query(self, request: pb.QueryRequest) -> Neighbors:

@@ -37,7 +37,7 @@ class ClientTest(unittest.TestCase):
         rng = np.random.default_rng(5)
         n = 3000
         pts = rng.random((n, 2))
-        with Client(self.target) as c:
+        with Client(self.target, chunk_points=500) as c:  # force chunking
             s = c.create_session(pts, session_id="py-life")
             self.assertEqual(s.name, "sessions/py-life")
             self.assertEqual(s.point_count, n)
@@ -67,6 +67,11 @@ class ClientTest(unittest.TestCase):
             want = np.argsort(qd, axis=1)[:, :4]
             for r in range(len(q)):
                 self.assertTrue(np.array_equal(knn.row(r), want[r]))
+
+            knn_ids = c.knn(s.name, 5, ids=np.arange(0, n, 97))
+            for row, i in enumerate(range(0, n, 97)):
+                self.assertTrue(np.array_equal(knn_ids.row(row),
+                                               np.argsort(dist2[i])[:5]))
 
             r = 0.03
             rad = c.radius(s.name, r, ids=np.arange(100))
