@@ -41,9 +41,13 @@ class Neighbors:
     ids: np.ndarray
     distances: np.ndarray
     truncated_rows: np.ndarray
+    # Sessions with client ids (POINT_ID_POLICY_CLIENT): neighbours as the
+    # client's uint64 ids; `ids` is then empty.
+    client_ids: np.ndarray
 
     def row(self, i: int) -> np.ndarray:
-        return self.ids[self.offsets[i]:self.offsets[i + 1]]
+        ids = self.client_ids if len(self.client_ids) else self.ids
+        return ids[self.offsets[i]:self.offsets[i + 1]]
 
     def __len__(self) -> int:
         return len(self.offsets) - 1
@@ -148,17 +152,26 @@ class Client:
 
     # Sessions -------------------------------------------------------------
     def create_session(self, points, session_id: str = "",
-                       threads: int = 0) -> pb.Session:
+                       threads: int = 0, ids=None) -> pb.Session:
+        """ids: optional distinct uint64 per point (POINT_ID_POLICY_CLIENT)."""
         flat = _xy(points)
+        id_arr = None if ids is None else np.asarray(ids, dtype=np.uint64)
+        if id_arr is not None and 2 * len(id_arr) != len(flat):
+            raise ValueError("one id per point")
+        policy = (pb.POINT_ID_POLICY_CLIENT if id_arr is not None
+                  else pb.POINT_ID_POLICY_SEQUENTIAL)
 
         def requests():
             yield pb.CreateSessionRequest(header=pb.CreateSessionHeader(
                 session_id=session_id, point_count=len(flat) // 2,
-                options=pb.SessionOptions(threads=threads)))
+                options=pb.SessionOptions(threads=threads,
+                                          point_id_policy=policy)))
             step = 2 * self._chunk_points
             for i in range(0, len(flat), step):
-                yield pb.CreateSessionRequest(points=pb.PointChunk(
-                    xy=flat[i:i + step].tolist()))
+                chunk = pb.PointChunk(xy=flat[i:i + step].tolist())
+                if id_arr is not None:
+                    chunk.ids.extend(id_arr[i // 2:(i + step) // 2].tolist())
+                yield pb.CreateSessionRequest(points=chunk)
 
         try:
             return self._stub.CreateSession(requests())
@@ -197,6 +210,7 @@ class Client:
     # Queries ----------------------------------------------------------------
     def query(self, request: pb.QueryRequest) -> Neighbors:
         offsets, ids, dists, trunc = [np.zeros(1, np.uint64)], [], [], []
+        cids = []
         step, base, rows = 0, 0, 0
         try:
             for chunk in self._stub.Query(request):
@@ -204,9 +218,10 @@ class Client:
                 off = np.asarray(chunk.offsets, dtype=np.uint64)
                 offsets.append(off[1:] + base)
                 ids.append(np.asarray(chunk.ids, dtype=np.uint32))
+                cids.append(np.asarray(chunk.client_ids, dtype=np.uint64))
                 dists.append(np.asarray(chunk.distances, dtype=np.float64))
                 trunc.append(np.asarray(chunk.truncated_rows, np.uint64) + rows)
-                base += len(chunk.ids)
+                base += len(chunk.ids) + len(chunk.client_ids)
                 rows += len(off) - 1
         except grpc.RpcError as e:
             _raise(e)
@@ -214,7 +229,8 @@ class Client:
         return Neighbors(step, cat(offsets), cat(ids) if ids else
                          np.zeros(0, np.uint32),
                          cat(dists) if dists else np.zeros(0),
-                         cat(trunc) if trunc else np.zeros(0, np.uint64))
+                         cat(trunc) if trunc else np.zeros(0, np.uint64),
+                         cat(cids) if cids else np.zeros(0, np.uint64))
 
     def nearest_all(self, name: str) -> Neighbors:
         return self.query(pb.QueryRequest(

@@ -89,6 +89,19 @@ class ClientTest(unittest.TestCase):
                 c.get_session(s.name)
             self.assertEqual(e.exception.code, grpc.StatusCode.NOT_FOUND)
 
+    def test_client_ids(self):
+        rng = np.random.default_rng(9)
+        pts = rng.random((300, 2))
+        ids = (np.arange(300, dtype=np.uint64) * 7919 + 10**12)
+        with Client(self.target) as c:
+            s = c.create_session(pts, ids=ids)
+            self.assertEqual(s.options.point_id_policy, 2)
+            nn = c.nearest_all(s.name)
+            d2 = ((pts[:, None, :] - pts[None, :, :]) ** 2).sum(-1)
+            np.fill_diagonal(d2, np.inf)
+            self.assertTrue(np.array_equal(nn.client_ids, ids[d2.argmin(1)]))
+            c.delete_session(s.name)
+
     def test_errors(self):
         with Client(self.target) as c:
             s = c.create_session(np.random.default_rng(6).random((200, 2)))
