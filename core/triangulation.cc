@@ -382,6 +382,7 @@ bool Triangulation::InsertBatch(std::vector<uint32_t> pending,
     // Coincident points join sites; one new vertex per triangle per round.
     owner.assign(mesh_.num_triangles(), kNoVertex);
     std::vector<uint32_t> split, deferred;
+    bool outside_taken = false;
     for (size_t i = 0; i < pending.size(); ++i) {
       const uint32_t v = pending[i];
       if (loc[i].triangle == kNoEdge) return false;
@@ -396,6 +397,17 @@ bool Triangulation::InsertBatch(std::vector<uint32_t> pending,
         dup_next_[w] = v;
         has_duplicates_ = true;
         continue;
+      }
+      // Points outside the hull go one per round: two of them split into
+      // neighbouring ghost triangles at once can leave a hull that turns
+      // left everywhere yet winds twice (caught by HullWindsOnce, but then
+      // the whole step is rebuilt).
+      if (mesh_.view().IsGhost(loc[i].triangle)) {
+        if (outside_taken) {
+          deferred.push_back(v);
+          continue;
+        }
+        outside_taken = true;
       }
       uint32_t& o = owner[loc[i].triangle];
       if (o == kNoVertex) {

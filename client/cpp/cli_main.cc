@@ -139,10 +139,12 @@ int main(int argc, char** argv) {
       }
       auto ack = (*stream)->MoveBy(d);
       if (!ack.ok()) return Fail(ack.status());
-      std::printf("step %llu: %s, %llu Delaunay flips, %.3f ms\n",
+      std::printf("step %llu: %s, %llu Delaunay flips, %.3f ms%s%s\n",
                   (unsigned long long)ack->step(), ack->stats().path().c_str(),
                   (unsigned long long)ack->stats().delaunay_flips(),
-                  1e3 * ack->stats().update_seconds());
+                  1e3 * ack->stats().update_seconds(),
+                  ack->stats().fallback_reason().empty() ? "" : "; ",
+                  ack->stats().fallback_reason().c_str());
     }
     const absl::Status st = (*stream)->Finish();
     if (!st.ok()) return Fail(st);
