@@ -38,6 +38,7 @@ const char kUsage[] =
     "  create   --csv=points.csv | --random=N   [--id=name]\n"
     "  list\n"
     "  get      --session=sessions/ID\n"
+    "  stats    --session=sessions/ID   (all session fields)\n"
     "  delete   --session=sessions/ID\n"
     "  move     --session=... (--csv=deltas.csv | --sigma=S) [--steps=N]\n"
     "  query    --session=... --kind=nearest|knn|radius [--k=K] [--r=R]\n"
@@ -112,10 +113,14 @@ int main(int argc, char** argv) {
     auto l = client.ListSessions();
     if (!l.ok()) return Fail(l.status());
     for (const auto& s : *l) Print(s);
-  } else if (cmd == "get") {
+  } else if (cmd == "get" || cmd == "stats") {
     auto s = client.GetSession(session);
     if (!s.ok()) return Fail(s.status());
-    Print(*s);
+    if (cmd == "get") {
+      Print(*s);
+    } else {
+      std::printf("%s", s->DebugString().c_str());
+    }
   } else if (cmd == "delete") {
     const absl::Status st = client.DeleteSession(session);
     if (!st.ok()) return Fail(st);
