@@ -1,0 +1,40 @@
+// Peer engine for the benchmarks: a uniform grid (cell list) rebuilt every
+// step with a parallel counting sort; NN, k-NN and radius by ring search.
+#ifndef KINETRI_BENCH_GRID_ENGINE_H_
+#define KINETRI_BENCH_GRID_ENGINE_H_
+
+#include <cstdint>
+#include <vector>
+
+#include "core/vec2.h"
+
+namespace kinetri::bench {
+
+class GridEngine {
+ public:
+  // cell: side of a cell (about the mean spacing, or the query radius).
+  void Build(const std::vector<core::Vec2>& pts, double cell);
+  // Nearest other point of each point.
+  std::vector<uint32_t> AllNearest() const;
+  // k nearest other points of each point, closest first (CSR, k per row).
+  std::vector<uint32_t> AllKNearest(int k) const;
+  // Number of other points within r of each point (and their ids, CSR).
+  void AllWithinRadius(double r, std::vector<uint64_t>* offsets,
+                       std::vector<uint32_t>* ids) const;
+
+ private:
+  template <typename Visit>
+  void Ring(int cx, int cy, int ring, Visit&& visit) const;
+  int CellX(double x) const;
+  int CellY(double y) const;
+
+  const std::vector<core::Vec2>* pts_ = nullptr;
+  double cell_ = 1.0, x0_ = 0.0, y0_ = 0.0;
+  int nx_ = 1, ny_ = 1;
+  std::vector<uint32_t> start_;  // CSR over cells
+  std::vector<uint32_t> order_;  // point ids sorted by cell
+};
+
+}  // namespace kinetri::bench
+
+#endif  // KINETRI_BENCH_GRID_ENGINE_H_
