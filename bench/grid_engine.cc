@@ -128,7 +128,8 @@ void GridEngine::AllWithinRadius(double r, std::vector<uint64_t>* offsets,
       },
       256);
   offsets->assign(n + 1, 0);
-  for (size_t i = 0; i < n; ++i) (*offsets)[i + 1] = (*offsets)[i] + rows[i].size();
+  for (size_t i = 0; i < n; ++i)
+    (*offsets)[i + 1] = (*offsets)[i] + rows[i].size();
   ids->resize((*offsets)[n]);
   core::ParallelFor(0, n, [&](size_t i) {
     std::copy(rows[i].begin(), rows[i].end(), ids->begin() + (*offsets)[i]);

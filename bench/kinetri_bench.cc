@@ -98,7 +98,8 @@ Workload MakeWorkload(const std::string& name, double param, size_t n,
     const double rate = param * spacing;
     w.motion = [rate](const std::vector<Vec2>& cur, int) {
       std::vector<Vec2> d(cur.size());
-      for (size_t i = 0; i < cur.size(); ++i) d[i] = {rate * (cur[i].y - 0.5), 0};
+      for (size_t i = 0; i < cur.size(); ++i)
+        d[i] = {rate * (cur[i].y - 0.5), 0};
       return d;
     };
   } else {  // vortex: rigid-ish rotation about the centre, decaying outward
@@ -156,7 +157,8 @@ struct Record {
 double Quantile(std::vector<double> v, double q) {
   if (v.empty()) return 0;
   std::sort(v.begin(), v.end());
-  return v[std::min(v.size() - 1, static_cast<size_t>(q * (v.size() - 1) + 0.5))];
+  return v[std::min(v.size() - 1,
+                    static_cast<size_t>(q * (v.size() - 1) + 0.5))];
 }
 
 std::string MachineJson() {
@@ -171,11 +173,12 @@ std::string MachineJson() {
   std::string commit = "unknown";
   if (FILE* f = popen("git rev-parse --short HEAD 2>/dev/null", "r")) {
     char buf[64] = {0};
-    if (fgets(buf, sizeof buf, f)) commit = std::string(buf, strcspn(buf, "\n"));
+    if (fgets(buf, sizeof buf, f))
+      commit = std::string(buf, strcspn(buf, "\n"));
     pclose(f);
   }
-  return absl::StrCat("{\"cpu\":\"", model, "\",\"cores\":",
-                      std::thread::hardware_concurrency(),
+  return absl::StrCat("{\"cpu\":\"", model,
+                      "\",\"cores\":", std::thread::hardware_concurrency(),
                       ",\"gpu\":null,\"commit\":\"", commit, "\"}");
 }
 
@@ -189,8 +192,9 @@ int main(int argc, char** argv) {
       "--json=FILE for machine-readable records.");
   absl::ParseCommandLine(argc, argv);
   const bool quick = absl::GetFlag(FLAGS_quick);
-  std::vector<size_t> sizes = quick ? std::vector<size_t>{10000, 100000}
-                                    : std::vector<size_t>{10000, 100000, 1000000};
+  std::vector<size_t> sizes = quick
+                                  ? std::vector<size_t>{10000, 100000}
+                                  : std::vector<size_t>{10000, 100000, 1000000};
   if (!absl::GetFlag(FLAGS_sizes).empty()) {
     sizes.clear();
     for (auto s : absl::StrSplit(absl::GetFlag(FLAGS_sizes), ',')) {
@@ -233,7 +237,8 @@ int main(int argc, char** argv) {
       for (uint32_t i = 0; i < n; ++i) all[i] = i;
       for (int s = -1; s < steps; ++s) {  // step -1: warm-up
         const auto d = w.motion(pos, s);
-        for (size_t i = 0; i < n; ++i) pos[i] = {pos[i].x + d[i].x, pos[i].y + d[i].y};
+        for (size_t i = 0; i < n; ++i)
+          pos[i] = {pos[i].x + d[i].x, pos[i].y + d[i].y};
         const bool measure = s >= 0;
         const bool check = s == 0;
         std::map<std::string, Answers> ans;
@@ -308,7 +313,8 @@ int main(int argc, char** argv) {
             Answers& a = ans["grid"];
             for (uint32_t i = 0; i < n; ++i) {
               a.nn_d2.push_back(D2(pos[i], pos[nn[i]]));
-              for (int k = 0; k < 8; ++k) a.knn_d2.push_back(D2(pos[i], pos[knn[8 * i + k]]));
+              for (int k = 0; k < 8; ++k)
+                a.knn_d2.push_back(D2(pos[i], pos[knn[8 * i + k]]));
               a.r8_count.push_back(off8[i + 1] - off8[i]);
               a.r32_count.push_back(off32[i + 1] - off32[i]);
             }
@@ -317,48 +323,59 @@ int main(int argc, char** argv) {
         {  // nanoflann
           NanoCloud cloud{&pos};
           auto t0 = Clock::now();
-          NanoTree tree(2, cloud, nanoflann::KDTreeSingleIndexAdaptorParams(10));
+          NanoTree tree(2, cloud,
+                        nanoflann::KDTreeSingleIndexAdaptorParams(10));
           rec("nanoflann", "update", Ms(t0));
           std::vector<uint32_t> nn(n), knn(8 * n);
           t0 = Clock::now();
-          kc::ParallelFor(0, n, [&](size_t i) {
-            uint32_t idx[2];
-            double d2[2];
-            const double q[2] = {pos[i].x, pos[i].y};
-            tree.knnSearch(q, 2, idx, d2);
-            nn[i] = idx[0] == i ? idx[1] : idx[0];
-          }, 256);
+          kc::ParallelFor(
+              0, n,
+              [&](size_t i) {
+                uint32_t idx[2];
+                double d2[2];
+                const double q[2] = {pos[i].x, pos[i].y};
+                tree.knnSearch(q, 2, idx, d2);
+                nn[i] = idx[0] == i ? idx[1] : idx[0];
+              },
+              256);
           rec("nanoflann", "all_nn", Ms(t0));
           t0 = Clock::now();
-          kc::ParallelFor(0, n, [&](size_t i) {
-            uint32_t idx[9];
-            double d2[9];
-            const double q[2] = {pos[i].x, pos[i].y};
-            tree.knnSearch(q, 9, idx, d2);
-            int k = 0;
-            for (int j = 0; j < 9 && k < 8; ++j) {
-              if (idx[j] != i) knn[8 * i + k++] = idx[j];
-            }
-          }, 256);
+          kc::ParallelFor(
+              0, n,
+              [&](size_t i) {
+                uint32_t idx[9];
+                double d2[9];
+                const double q[2] = {pos[i].x, pos[i].y};
+                tree.knnSearch(q, 9, idx, d2);
+                int k = 0;
+                for (int j = 0; j < 9 && k < 8; ++j) {
+                  if (idx[j] != i) knn[8 * i + k++] = idx[j];
+                }
+              },
+              256);
           rec("nanoflann", "knn8", Ms(t0));
           std::vector<uint64_t> c8(n), c32(n);
           for (auto [rr, cnt, ph] : {std::make_tuple(r8, &c8, "radius8"),
                                      std::make_tuple(r32, &c32, "radius32")}) {
             t0 = Clock::now();
-            kc::ParallelFor(0, n, [&](size_t i) {
-              std::vector<std::pair<uint32_t, double>> m;
-              const double q[2] = {pos[i].x, pos[i].y};
-              (*cnt)[i] =
-                  tree.radiusSearch(q, rr * rr, m, nanoflann::SearchParams()) -
-                  1;
-            }, 256);
+            kc::ParallelFor(
+                0, n,
+                [&](size_t i) {
+                  std::vector<std::pair<uint32_t, double>> m;
+                  const double q[2] = {pos[i].x, pos[i].y};
+                  (*cnt)[i] = tree.radiusSearch(q, rr * rr, m,
+                                                nanoflann::SearchParams()) -
+                              1;
+                },
+                256);
             rec("nanoflann", ph, Ms(t0));
           }
           if (check) {
             Answers& a = ans["nanoflann"];
             for (uint32_t i = 0; i < n; ++i) {
               a.nn_d2.push_back(D2(pos[i], pos[nn[i]]));
-              for (int k = 0; k < 8; ++k) a.knn_d2.push_back(D2(pos[i], pos[knn[8 * i + k]]));
+              for (int k = 0; k < 8; ++k)
+                a.knn_d2.push_back(D2(pos[i], pos[knn[8 * i + k]]));
               a.r8_count.push_back(c8[i]);
               a.r32_count.push_back(c32[i]);
             }
@@ -379,14 +396,22 @@ int main(int argc, char** argv) {
       for (const auto& [e, phases] : times) {
         for (const auto& [ph, v] : phases) {
           if (failed[e]) {
-            std::printf("%-10s %6g %8zu %-14s %-9s %10s\n", wname.c_str(), param,
-                        n, e.c_str(), ph.c_str(), "FAILED");
+            std::printf("%-10s %6g %8zu %-14s %-9s %10s\n", wname.c_str(),
+                        param, n, e.c_str(), ph.c_str(), "FAILED");
             continue;
           }
-          Record r{wname, param, n, e, e == "kinetri-1t" || e == "cgal-rebuild" ? 1 : threads,
-                   ph, Quantile(v, 0.5), Quantile(v, 0.9), static_cast<int>(v.size())};
-          std::printf("%-10s %6g %8zu %-14s %-9s %10.3f %10.3f\n", wname.c_str(),
-                      param, n, e.c_str(), ph.c_str(), r.median_ms, r.p90_ms);
+          Record r{wname,
+                   param,
+                   n,
+                   e,
+                   e == "kinetri-1t" || e == "cgal-rebuild" ? 1 : threads,
+                   ph,
+                   Quantile(v, 0.5),
+                   Quantile(v, 0.9),
+                   static_cast<int>(v.size())};
+          std::printf("%-10s %6g %8zu %-14s %-9s %10.3f %10.3f\n",
+                      wname.c_str(), param, n, e.c_str(), ph.c_str(),
+                      r.median_ms, r.p90_ms);
           records.push_back(r);
         }
       }
@@ -398,11 +423,12 @@ int main(int argc, char** argv) {
     out << "{\"machine\":" << MachineJson() << ",\"records\":[\n";
     for (size_t i = 0; i < records.size(); ++i) {
       const Record& r = records[i];
-      out << absl::StrCat("{\"workload\":\"", r.workload, "\",\"param\":", r.param,
-                          ",\"n\":", r.n, ",\"engine\":\"", r.engine,
-                          "\",\"threads\":", r.threads, ",\"phase\":\"", r.phase,
-                          "\",\"median_ms\":", r.median_ms, ",\"p90_ms\":", r.p90_ms,
-                          ",\"steps\":", r.steps, "}")
+      out << absl::StrCat("{\"workload\":\"", r.workload,
+                          "\",\"param\":", r.param, ",\"n\":", r.n,
+                          ",\"engine\":\"", r.engine,
+                          "\",\"threads\":", r.threads, ",\"phase\":\"",
+                          r.phase, "\",\"median_ms\":", r.median_ms,
+                          ",\"p90_ms\":", r.p90_ms, ",\"steps\":", r.steps, "}")
           << (i + 1 < records.size() ? ",\n" : "\n");
     }
     out << "]}\n";

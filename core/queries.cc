@@ -239,27 +239,44 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
       [r, max_results](const TriangulationView& v, const Query& q,
                        uint32_t root, std::vector<Hit>& out) {
         if (CompareDistanceToRadius(q.q, v.pos[root], r) > 0) return false;
-        thread_local std::vector<uint32_t> found, stack;
+        // Sites found, with their squared distance (double) for cheap
+        // comparisons; exact predicates decide near-ties and the boundary.
+        thread_local std::vector<std::pair<double, uint32_t>> found;
+        thread_local std::vector<std::pair<double, uint32_t>> stack;
         found.clear();
-        stack.assign(1, root);
+        stack.assign(1, {SquaredDistance(q.q, v.pos[root]), root});
+        const double rr = r * r;
         while (!stack.empty()) {
-          const uint32_t u = stack.back();
+          const auto [du, u] = stack.back();
           stack.pop_back();
-          found.push_back(u);
+          found.push_back({du, u});
           v.ForEachNeighbor(u, [&](uint32_t w) {
+            if (w == root) return;
+            const double dw = SquaredDistance(q.q, v.pos[w]);
+            // In the disk? (clear cases in double, the boundary exactly)
+            const double tol = internal::kDistErrBound * (dw + rr);
+            if (dw > rr + tol) return;
+            if (!(dw < rr - tol) &&
+                CompareDistanceToRadius(q.q, v.pos[w], r) > 0) {
+              return;
+            }
             // parent(w) must come before w; this also keeps the root (the
             // first site, whose "parent" comes after it) from being revisited.
-            if (w != root && CompareCloser(q.q, v.pos[u], v.pos[w]) < 0 &&
-                CompareDistanceToRadius(q.q, v.pos[w], r) <= 0 &&
-                FirstNeighbor(v, q.q, w, /*include_self=*/false) == u) {
-              stack.push_back(w);
+            if (CompareCloserCached(q.q, v.pos[u], du, v.pos[w], dw) >= 0) {
+              return;
+            }
+            if (FirstNeighbor(v, q.q, w, /*include_self=*/false) == u) {
+              stack.push_back({dw, w});
             }
           });
         }
-        std::sort(found.begin(), found.end(), [&](uint32_t a, uint32_t b) {
-          return CompareCloser(q.q, v.pos[a], v.pos[b]) < 0;
-        });
-        for (uint32_t s : found) EmitSite(v, s, q.q, q.self_ext, out);
+        std::sort(found.begin(), found.end(),
+                  [&](const std::pair<double, uint32_t>& a,
+                      const std::pair<double, uint32_t>& b) {
+                    return CompareCloserCached(q.q, v.pos[a.second], a.first,
+                                               v.pos[b.second], b.first) < 0;
+                  });
+        for (const auto& f : found) EmitSite(v, f.second, q.q, q.self_ext, out);
         if (max_results && out.size() > max_results) {
           out.resize(max_results);
           return true;

@@ -13,13 +13,39 @@ namespace kinetri::core {
 
 // The neighbour of `site` that comes first in the CompareCloser order from q
 // (or `site` itself when it precedes all of them, i.e. when include_self).
+// CompareCloser(q, a, b) given the squared distances da, db computed in
+// double: decided by them unless they are within rounding of each other.
+KINETRI_HD inline int CompareCloserCached(const Vec2& q, const Vec2& a,
+                                          double da, const Vec2& b, double db) {
+  const double tol = internal::kDistErrBound * (da + db);
+  if (da < db - tol) return -1;
+  if (da > db + tol) return 1;
+  return CompareCloser(q, a, b);
+}
+
+KINETRI_HD inline double SquaredDistance(const Vec2& q, const Vec2& p) {
+  const double dx = q.x - p.x, dy = q.y - p.y;
+  return dx * dx + dy * dy;
+}
+
 KINETRI_HD inline uint32_t FirstNeighbor(const TriangulationView& v,
                                          const Vec2& q, uint32_t site,
                                          bool include_self) {
+  // Squared distances in double decide when they differ by more than their
+  // rounding error; only near-ties go to the exact CompareCloser.
+  auto d2 = [&](uint32_t x) { return SquaredDistance(q, v.pos[x]); };
   uint32_t best = include_self ? site : kNoVertex;
+  double best_d2 = include_self ? d2(site) : 0.0;
   v.ForEachNeighbor(site, [&](uint32_t w) {
-    if (best == kNoVertex || CompareCloser(q, v.pos[w], v.pos[best]) < 0) {
+    const double dw = d2(w);
+    if (best == kNoVertex) {
       best = w;
+      best_d2 = dw;
+      return;
+    }
+    if (CompareCloserCached(q, v.pos[w], dw, v.pos[best], best_d2) < 0) {
+      best = w;
+      best_d2 = dw;
     }
   });
   return best;
