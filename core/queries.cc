@@ -234,55 +234,59 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
                                          double r, uint32_t max_results,
                                          QueryLimits limits) {
   if (absl::Status s = CheckRadius(r); !s.ok()) return s;
-  return RunRows(
-      t, queries, limits,
-      [r, max_results](const TriangulationView& v, const Query& q,
-                       uint32_t root, std::vector<Hit>& out) {
-        if (CompareDistanceToRadius(q.q, v.pos[root], r) > 0) return false;
-        // Sites found, with their squared distance (double) for cheap
-        // comparisons; exact predicates decide near-ties and the boundary.
-        thread_local std::vector<std::pair<double, uint32_t>> found;
-        thread_local std::vector<std::pair<double, uint32_t>> stack;
-        found.clear();
-        stack.assign(1, {SquaredDistance(q.q, v.pos[root]), root});
-        const double rr = r * r;
-        while (!stack.empty()) {
-          const auto [du, u] = stack.back();
-          stack.pop_back();
-          found.push_back({du, u});
-          v.ForEachNeighbor(u, [&](uint32_t w) {
-            if (w == root) return;
-            const double dw = SquaredDistance(q.q, v.pos[w]);
-            // In the disk? (clear cases in double, the boundary exactly)
-            const double tol = internal::kDistErrBound * (dw + rr);
-            if (dw > rr + tol) return;
-            if (!(dw < rr - tol) &&
-                CompareDistanceToRadius(q.q, v.pos[w], r) > 0) {
-              return;
-            }
-            // parent(w) must come before w; this also keeps the root (the
-            // first site, whose "parent" comes after it) from being revisited.
-            if (CompareCloserCached(q.q, v.pos[u], du, v.pos[w], dw) >= 0) {
-              return;
-            }
-            if (FirstNeighbor(v, q.q, w, /*include_self=*/false) == u) {
-              stack.push_back({dw, w});
-            }
-          });
-        }
-        std::sort(found.begin(), found.end(),
-                  [&](const std::pair<double, uint32_t>& a,
-                      const std::pair<double, uint32_t>& b) {
-                    return CompareCloserCached(q.q, v.pos[a.second], a.first,
-                                               v.pos[b.second], b.first) < 0;
-                  });
-        for (const auto& f : found) EmitSite(v, f.second, q.q, q.self_ext, out);
-        if (max_results && out.size() > max_results) {
-          out.resize(max_results);
-          return true;
-        }
-        return false;
-      });
+  return RunRows(t, queries, limits,
+                 [r, max_results](const TriangulationView& v, const Query& q,
+                                  uint32_t root, std::vector<Hit>& out) {
+                   if (CompareDistanceToRadius(q.q, v.pos[root], r) > 0)
+                     return false;
+                   // Breadth-first over Delaunay neighbours inside the disk,
+                   // from the first site. Visited marks are per-thread epoch
+                   // stamps: a constant time check, never a scan. Squared
+                   // distances in double decide clear cases, exact predicates
+                   // the boundary and near-ties.
+                   thread_local std::vector<uint32_t> stamp;
+                   thread_local uint32_t epoch = 0;
+                   if (stamp.size() < v.num_points)
+                     stamp.assign(v.num_points, 0);
+                   if (++epoch == 0) {
+                     std::fill(stamp.begin(), stamp.end(), 0);
+                     epoch = 1;
+                   }
+                   thread_local std::vector<std::pair<double, uint32_t>> found;
+                   found.clear();
+                   found.push_back({SquaredDistance(q.q, v.pos[root]), root});
+                   stamp[root] = epoch;
+                   const double rr = r * r;
+                   for (size_t head = 0; head < found.size(); ++head) {
+                     const uint32_t u = found[head].second;
+                     v.ForEachNeighbor(u, [&](uint32_t w) {
+                       if (stamp[w] == epoch) return;
+                       stamp[w] = epoch;
+                       const double dw = SquaredDistance(q.q, v.pos[w]);
+                       const double tol = internal::kDistErrBound * (dw + rr);
+                       if (dw > rr + tol) return;
+                       if (!(dw < rr - tol) &&
+                           CompareDistanceToRadius(q.q, v.pos[w], r) > 0) {
+                         return;
+                       }
+                       found.push_back({dw, w});
+                     });
+                   }
+                   std::sort(found.begin(), found.end(),
+                             [&](const std::pair<double, uint32_t>& a,
+                                 const std::pair<double, uint32_t>& b) {
+                               return CompareCloserCached(
+                                          q.q, v.pos[a.second], a.first,
+                                          v.pos[b.second], b.first) < 0;
+                             });
+                   for (const auto& f : found)
+                     EmitSite(v, f.second, q.q, q.self_ext, out);
+                   if (max_results && out.size() > max_results) {
+                     out.resize(max_results);
+                     return true;
+                   }
+                   return false;
+                 });
 }
 
 }  // namespace

@@ -15,14 +15,19 @@
 //    closest site is adjacent to one of the first i (each site has a strictly
 //    closer neighbour unless it is the first), so popping sites from a heap
 //    yields them in order;
-//  * fixed radius (FRNN) by reverse search, with no visited set: define
-//    parent(v) as v's Delaunay neighbour that comes first in the order. For
-//    every site v other than the nearest one, parent(v) comes strictly before
-//    v (greedy property above), hence is at distance <= |qv| <= r and also in
-//    the disk. So the parent links form a tree on the sites inside the disk,
-//    rooted at the nearest site, and a DFS from the root that descends to a
-//    neighbour w only when parent(w) is the current site reports every site
-//    in the disk exactly once.
+//  * fixed radius (FRNN): breadth-first search from the nearest site over
+//    Delaunay neighbours that lie in the disk. It finds every site in the
+//    disk because those sites are connected through the disk: a site v in
+//    the disk other than the first one has a Delaunay neighbour strictly
+//    before it in the order above (greedy property), hence at distance
+//    <= |qv| <= r, so following such neighbours from v stays in the disk and
+//    ends at the first site. Visited sites are marked with per-thread epoch
+//    stamps (constant-time check, no linear "visited?" scan). (A reverse
+//    search needing no marks at all - descend to w only when w's closest
+//    neighbour is the current site - was implemented first: it recomputes
+//    each candidate's closest neighbour, a cost quadratic in vertex degree,
+//    and measured 2.8x slower for 32-neighbour radius queries on 10K uniform
+//    points, so the CPU executor uses marks.)
 #ifndef KINETRI_CORE_QUERIES_H_
 #define KINETRI_CORE_QUERIES_H_
 
