@@ -168,7 +168,11 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
             const uint32_t start =
                 q.start_site != kNoVertex ? q.start_site : grid->Hint(q.q);
             const uint32_t root = WalkToNearestSite(v, q.q, start);
-            truncated[i] = row_fn(v, q, root, rows[i]) ? 1 : 0;
+            // Build the row in a reused buffer, then keep an exact-size copy.
+            thread_local std::vector<Hit> row;
+            row.clear();
+            truncated[i] = row_fn(v, q, root, row) ? 1 : 0;
+            rows[i].assign(row.begin(), row.end());
           },
           64);
     });
@@ -204,29 +208,44 @@ absl::StatusOr<NeighborLists> KNearestImpl(const Triangulation& t,
     return absl::InvalidArgumentError(absl::StrCat("k = ", k, " must be > 0"));
   }
   const size_t want = static_cast<size_t>(k);
-  return RunRows(
-      t, queries, limits,
-      [want](const TriangulationView& v, const Query& q, uint32_t root,
-             std::vector<Hit>& out) {
-        auto later = [&](uint32_t a, uint32_t b) {
-          return CompareCloser(q.q, v.pos[a], v.pos[b]) > 0;
-        };
-        std::priority_queue<uint32_t, std::vector<uint32_t>, decltype(later)>
-            heap(later);
-        absl::flat_hash_set<uint32_t> seen;
-        heap.push(root);
-        seen.insert(root);
-        while (!heap.empty() && out.size() < want) {
-          const uint32_t s = heap.top();
-          heap.pop();
-          EmitSite(v, s, q.q, q.self_ext, out);
-          v.ForEachNeighbor(s, [&](uint32_t w) {
-            if (seen.insert(w).second) heap.push(w);
-          });
-        }
-        if (out.size() > want) out.resize(want);
-        return false;
-      });
+  return RunRows(t, queries, limits,
+                 [want](const TriangulationView& v, const Query& q,
+                        uint32_t root, std::vector<Hit>& out) {
+                   // Min-heap on the exact order (squared distances in double
+                   // decide clear cases); visited sites marked with per-thread
+                   // epoch stamps.
+                   using Entry = std::pair<double, uint32_t>;
+                   auto later = [&](const Entry& a, const Entry& b) {
+                     return CompareCloserCached(q.q, v.pos[a.second], a.first,
+                                                v.pos[b.second], b.first) > 0;
+                   };
+                   thread_local std::vector<Entry> heap;
+                   thread_local std::vector<uint32_t> stamp;
+                   thread_local uint32_t epoch = 0;
+                   if (stamp.size() < v.num_points)
+                     stamp.assign(v.num_points, 0);
+                   if (++epoch == 0) {
+                     std::fill(stamp.begin(), stamp.end(), 0);
+                     epoch = 1;
+                   }
+                   heap.clear();
+                   heap.push_back({SquaredDistance(q.q, v.pos[root]), root});
+                   stamp[root] = epoch;
+                   while (!heap.empty() && out.size() < want) {
+                     std::pop_heap(heap.begin(), heap.end(), later);
+                     const uint32_t s = heap.back().second;
+                     heap.pop_back();
+                     EmitSite(v, s, q.q, q.self_ext, out);
+                     v.ForEachNeighbor(s, [&](uint32_t w) {
+                       if (stamp[w] == epoch) return;
+                       stamp[w] = epoch;
+                       heap.push_back({SquaredDistance(q.q, v.pos[w]), w});
+                       std::push_heap(heap.begin(), heap.end(), later);
+                     });
+                   }
+                   if (out.size() > want) out.resize(want);
+                   return false;
+                 });
 }
 
 absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
