@@ -30,6 +30,32 @@ double Distance(const Vec2& a, const Vec2& b) {
   return std::sqrt(dx * dx + dy * dy);
 }
 
+// Per-thread visited marks for graph searches: Begin() starts a new search
+// in O(1) (an epoch counter), Visit() marks a site and says if it was new.
+class VisitMarks {
+ public:
+  static VisitMarks& ForThread(uint32_t num_points) {
+    thread_local VisitMarks marks;
+    if (marks.stamp_.size() < num_points) marks.stamp_.assign(num_points, 0);
+    return marks;
+  }
+  void Begin() {
+    if (++epoch_ == 0) {
+      std::fill(stamp_.begin(), stamp_.end(), 0);
+      epoch_ = 1;
+    }
+  }
+  bool Visit(uint32_t site) {
+    if (stamp_[site] == epoch_) return false;
+    stamp_[site] = epoch_;
+    return true;
+  }
+
+ private:
+  std::vector<uint32_t> stamp_;
+  uint32_t epoch_ = 0;
+};
+
 // Appends the points of `site` (ascending external id) except `skip`.
 void EmitSite(const TriangulationView& v, uint32_t site, const Vec2& q,
               uint32_t skip, std::vector<Hit>& out) {
@@ -220,25 +246,18 @@ absl::StatusOr<NeighborLists> KNearestImpl(const Triangulation& t,
                                                 v.pos[b.second], b.first) > 0;
                    };
                    thread_local std::vector<Entry> heap;
-                   thread_local std::vector<uint32_t> stamp;
-                   thread_local uint32_t epoch = 0;
-                   if (stamp.size() < v.num_points)
-                     stamp.assign(v.num_points, 0);
-                   if (++epoch == 0) {
-                     std::fill(stamp.begin(), stamp.end(), 0);
-                     epoch = 1;
-                   }
+                   VisitMarks& marks = VisitMarks::ForThread(v.num_points);
+                   marks.Begin();
                    heap.clear();
                    heap.push_back({SquaredDistance(q.q, v.pos[root]), root});
-                   stamp[root] = epoch;
+                   marks.Visit(root);
                    while (!heap.empty() && out.size() < want) {
                      std::pop_heap(heap.begin(), heap.end(), later);
                      const uint32_t s = heap.back().second;
                      heap.pop_back();
                      EmitSite(v, s, q.q, q.self_ext, out);
                      v.ForEachNeighbor(s, [&](uint32_t w) {
-                       if (stamp[w] == epoch) return;
-                       stamp[w] = epoch;
+                       if (!marks.Visit(w)) return;
                        heap.push_back({SquaredDistance(q.q, v.pos[w]), w});
                        std::push_heap(heap.begin(), heap.end(), later);
                      });
@@ -263,24 +282,17 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
                    // stamps: a constant time check, never a scan. Squared
                    // distances in double decide clear cases, exact predicates
                    // the boundary and near-ties.
-                   thread_local std::vector<uint32_t> stamp;
-                   thread_local uint32_t epoch = 0;
-                   if (stamp.size() < v.num_points)
-                     stamp.assign(v.num_points, 0);
-                   if (++epoch == 0) {
-                     std::fill(stamp.begin(), stamp.end(), 0);
-                     epoch = 1;
-                   }
+                   VisitMarks& marks = VisitMarks::ForThread(v.num_points);
+                   marks.Begin();
                    thread_local std::vector<std::pair<double, uint32_t>> found;
                    found.clear();
                    found.push_back({SquaredDistance(q.q, v.pos[root]), root});
-                   stamp[root] = epoch;
+                   marks.Visit(root);
                    const double rr = r * r;
                    for (size_t head = 0; head < found.size(); ++head) {
                      const uint32_t u = found[head].second;
                      v.ForEachNeighbor(u, [&](uint32_t w) {
-                       if (stamp[w] == epoch) return;
-                       stamp[w] = epoch;
+                       if (!marks.Visit(w)) return;
                        const double dw = SquaredDistance(q.q, v.pos[w]);
                        const double tol = internal::kDistErrBound * (dw + rr);
                        if (dw > rr + tol) return;
