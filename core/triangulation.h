@@ -8,18 +8,21 @@
 //  * Points keep the caller's ids 0..n-1 ("external"). Internally they are
 //    numbered along a Hilbert curve for locality; the numbering is refreshed
 //    when edges stretch too far in it.
-//  * Exactly coincident points form one "site": the smallest internal id is
-//    the mesh vertex, the others hang off it (dup_next chain) and are still
+//  * Exactly coincident points form one "site": one of them (rep) is the
+//    mesh vertex, the others hang off it (dup_next chain) and are still
 //    returned by queries. Sites separate again when the points move apart.
 //  * Fewer than three sites, or all sites collinear, is the "line" mode: the
 //    Delaunay graph is then the path through the sites in (x, y) order.
 //
-// An update first tries the local path (fixing + legalizing, core/kinetic.h)
-// and splits the step into halves up to max_subdivision_depth times when
-// fixing gets stuck. Past that it removes the vertices of the stuck triangles
-// (core/vertex_ops.h), redoes the step without them and inserts them at their
-// new positions; only when that exceeds a budget (1/8 of the sites) does it
-// rebuild with CGAL. StepReport tells which path was taken.
+// An update moves the points and repairs the mesh locally (fixing +
+// legalizing, core/kinetic.h). When fixing gets stuck the step is split for
+// the stuck vertices: they are held back, then their motion is halved, and
+// they finish it in further sparse passes (optionally the whole step is split
+// too, max_subdivision_depth). A vertex stuck more than max_halvings times
+// is removed and re-inserted at its new position (core/vertex_ops.h). CGAL
+// rebuilds the mesh when more than rebuild_fraction of the triangles invert,
+// when re-insertion would exceed 1/8 of the sites, or when max_passes run
+// out. StepReport tells which path was taken.
 #ifndef KINETRI_CORE_TRIANGULATION_H_
 #define KINETRI_CORE_TRIANGULATION_H_
 

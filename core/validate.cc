@@ -147,11 +147,8 @@ absl::Status Triangulation::Validate() const {
   uint64_t ghosts = 0;
   for (uint32_t t = 0; t < mesh_.num_triangles(); ++t) ghosts += m.IsGhost(t);
   const uint64_t finite = mesh_.num_triangles() - ghosts;
-  if (finite + ghosts + 2 !=
-      2 * static_cast<uint64_t>(sites_.size()) + ghosts) {
-    if (finite != 2 * sites_.size() - ghosts - 2) {
-      return absl::InternalError("Euler characteristic is wrong");
-    }
+  if (finite + ghosts + 2 != 2 * static_cast<uint64_t>(sites_.size())) {
+    return absl::InternalError("Euler characteristic is wrong");
   }
   // Delaunay: every interior edge is locally Delaunay (exact, with SoS).
   ParallelFor(0, ne, [&](size_t i) {

@@ -157,6 +157,19 @@ TEST(Kinetic, HullExpandsAndContracts) {
   });
 }
 
+TEST(Kinetic, WholeStepSubdivision) {
+  // The optional whole-step split (note §3.2) on top of the local sub-steps.
+  const size_t n = 1500;
+  TriangulationOptions opt;
+  opt.max_subdivision_depth = 2;
+  opt.rebuild_fraction = 1.0;
+  auto t = Triangulation::Create(testing::UniformPoints(n, 131), opt);
+  ASSERT_TRUE(t.ok());
+  std::mt19937_64 rng(132);
+  RunSequence(
+      *t, 6, [&](int) { return Brownian(n, 0.5 / std::sqrt(double(n)), rng); });
+}
+
 TEST(Kinetic, SparseUpdates) {
   const size_t n = 3000;
   auto t = Triangulation::Create(testing::UniformPoints(n, 51));
