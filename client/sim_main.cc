@@ -25,10 +25,10 @@ ABSL_FLAG(int, steps, 100, "simulation steps");
 ABSL_FLAG(double, sigma, 0.1,
           "step standard deviation in units of the mean spacing 1/sqrt(n)");
 ABSL_FLAG(double, radius, 1.5, "radius query, in mean spacings (brownian)");
-ABSL_FLAG(double, drift, 0.15,
+ABSL_FLAG(double, drift, 0.08,
           "dla: drift of walkers towards the centre per step, in mean "
           "spacings (keeps the demo short)");
-ABSL_FLAG(double, stick, 0.5,
+ABSL_FLAG(double, stick, 0.8,
           "dla: a walker sticks when its nearest neighbour is in the "
           "aggregate and closer than this, in mean spacings");
 ABSL_FLAG(std::string, svg, "kinetri.svg",

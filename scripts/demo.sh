@@ -18,8 +18,8 @@ for _ in $(seq 100); do
 done
 [[ -n "$port" ]] || { cat out/server.log; echo "server did not start" >&2; exit 1; }
 echo "kinetri-server is up on 127.0.0.1:$port (log: out/server.log)"
-./build/client/kinetri-sim --server="127.0.0.1:$port" --mode=dla --n=5000 \
-  --steps=300 --sigma=0.5 --svg=out/kinetri-dla.svg
+./build/client/kinetri-sim --server="127.0.0.1:$port" --mode=dla --n=6000 \
+  --steps=400 --sigma=1.0 --svg=out/kinetri-dla.svg
 ./build/client/kinetri-sim --server="127.0.0.1:$port" --mode=brownian \
   --n="${KINETRI_DEMO_N:-100000}" --steps=20 --sigma=0.1 \
   --svg=out/kinetri-brownian.svg
