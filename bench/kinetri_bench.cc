@@ -33,6 +33,7 @@
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
 #include "bench/grid_engine.h"
+#include "bench/nanoflann_cloud.h"
 #include "core/parallel.h"
 #include "core/queries.h"
 #include "core/triangulation.h"
@@ -117,19 +118,8 @@ Workload MakeWorkload(const std::string& name, double param, size_t n,
   return w;
 }
 
-struct NanoCloud {
-  const std::vector<Vec2>* pts;
-  size_t kdtree_get_point_count() const { return pts->size(); }
-  double kdtree_get_pt(size_t i, size_t d) const {
-    return d == 0 ? (*pts)[i].x : (*pts)[i].y;
-  }
-  template <class B>
-  bool kdtree_get_bbox(B&) const {
-    return false;
-  }
-};
-using NanoTree = nanoflann::KDTreeSingleIndexAdaptor<
-    nanoflann::L2_Simple_Adaptor<double, NanoCloud>, NanoCloud, 2, uint32_t>;
+using kinetri::bench::NanoCloud;
+using kinetri::bench::NanoTree;
 
 // Answers of one engine for the cross-check: per point, the squared
 // distances of its k nearest others, and its radius counts.

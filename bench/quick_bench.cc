@@ -19,6 +19,7 @@
 #include "absl/flags/flag.h"
 #include "absl/flags/parse.h"
 #include "absl/flags/usage.h"
+#include "bench/nanoflann_cloud.h"
 #include "core/queries.h"
 #include "core/triangulation.h"
 
@@ -54,27 +55,16 @@ double CgalBuild(const std::vector<Vec2>& pts) {
   return s;
 }
 
-struct Cloud {
-  const std::vector<Vec2>* pts;
-  size_t kdtree_get_point_count() const { return pts->size(); }
-  double kdtree_get_pt(size_t i, size_t d) const {
-    return d == 0 ? (*pts)[i].x : (*pts)[i].y;
-  }
-  template <class BBox>
-  bool kdtree_get_bbox(BBox&) const {
-    return false;
-  }
-};
+using kinetri::bench::NanoCloud;
+using kinetri::bench::NanoTree;
 
 // nanoflann build + 2-NN of every point (the first hit is the point itself),
 // parallel over points with std::thread, as a fair peer.
 double NanoflannAllNN(const std::vector<Vec2>& pts, int threads,
                       double* build_s) {
-  using Tree = nanoflann::KDTreeSingleIndexAdaptor<
-      nanoflann::L2_Simple_Adaptor<double, Cloud>, Cloud, 2, uint32_t>;
-  Cloud cloud{&pts};
+  NanoCloud cloud{&pts};
   const auto t0 = Clock::now();
-  Tree tree(2, cloud, nanoflann::KDTreeSingleIndexAdaptorParams(10));
+  NanoTree tree(2, cloud, nanoflann::KDTreeSingleIndexAdaptorParams(10));
   *build_s = Seconds(t0);
   std::vector<uint32_t> nn(pts.size());
   const int nt =
