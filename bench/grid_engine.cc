@@ -5,7 +5,6 @@
 #include <algorithm>
 #include <atomic>
 #include <cmath>
-#include <queue>
 
 #include "core/parallel.h"
 
@@ -67,39 +66,60 @@ void GridEngine::Ring(int cx, int cy, int ring, Visit&& visit) const {
   }
 }
 
-std::vector<uint32_t> GridEngine::AllKNearest(int k) const {
+void GridEngine::KNearestOne(const core::Vec2& q, uint32_t skip, int k,
+                             uint32_t* out) const {
   const auto& pts = *pts_;
-  const size_t n = pts.size();
+  const int cx = CellX(q.x), cy = CellY(q.y);
+  // Max-heap of (d2, id) holding the k best so far, in a small array.
+  thread_local std::vector<std::pair<double, uint32_t>> best;
+  best.clear();
+  for (int ring = 0; ring <= std::max(nx_, ny_); ++ring) {
+    // Everything in rings > ring is farther than (ring - 1) * cell from q.
+    if (static_cast<int>(best.size()) == k) {
+      const double reach = ring > 0 ? (ring - 1) * cell_ : 0.0;
+      if (best.front().first <= reach * reach) break;
+    }
+    Ring(cx, cy, ring, [&](uint32_t j) {
+      if (j == skip) return;
+      const double dx = pts[j].x - q.x, dy = pts[j].y - q.y;
+      const std::pair<double, uint32_t> e(dx * dx + dy * dy, j);
+      if (static_cast<int>(best.size()) < k) {
+        best.push_back(e);
+        std::push_heap(best.begin(), best.end());
+      } else if (e < best.front()) {
+        std::pop_heap(best.begin(), best.end());
+        best.back() = e;
+        std::push_heap(best.begin(), best.end());
+      }
+    });
+  }
+  std::sort_heap(best.begin(), best.end());
+  for (int r = 0; r < k; ++r) {
+    out[r] = r < static_cast<int>(best.size()) ? best[r].second : UINT32_MAX;
+  }
+}
+
+void GridEngine::RadiusOne(const core::Vec2& q, uint32_t skip, double r,
+                           std::vector<uint32_t>& row) const {
+  const auto& pts = *pts_;
+  const int reach = static_cast<int>(std::ceil(r / cell_));
+  const int cx = CellX(q.x), cy = CellY(q.y);
+  for (int ring = 0; ring <= reach; ++ring) {
+    Ring(cx, cy, ring, [&](uint32_t j) {
+      if (j == skip) return;
+      const double dx = pts[j].x - q.x, dy = pts[j].y - q.y;
+      if (dx * dx + dy * dy <= r * r) row.push_back(j);
+    });
+  }
+}
+
+std::vector<uint32_t> GridEngine::AllKNearest(int k) const {
+  const size_t n = pts_->size();
   std::vector<uint32_t> out(n * k, UINT32_MAX);
   core::ParallelFor(
       0, n,
       [&](size_t i) {
-        const core::Vec2 q = pts[i];
-        const int cx = CellX(q.x), cy = CellY(q.y);
-        // max-heap of (d2, id) holding the k best so far
-        std::priority_queue<std::pair<double, uint32_t>> best;
-        for (int ring = 0; ring <= std::max(nx_, ny_); ++ring) {
-          // Everything in rings > ring is farther than ring * cell.
-          if (static_cast<int>(best.size()) == k) {
-            const double reach = ring > 0 ? (ring - 1) * cell_ : 0.0;
-            if (best.top().first <= reach * reach) break;
-          }
-          Ring(cx, cy, ring, [&](uint32_t j) {
-            if (j == i) return;
-            const double dx = pts[j].x - q.x, dy = pts[j].y - q.y;
-            const double d2 = dx * dx + dy * dy;
-            if (static_cast<int>(best.size()) < k) {
-              best.emplace(d2, j);
-            } else if (std::make_pair(d2, j) < best.top()) {
-              best.pop();
-              best.emplace(d2, j);
-            }
-          });
-        }
-        for (int r = static_cast<int>(best.size()) - 1; r >= 0; --r) {
-          out[i * k + r] = best.top().second;
-          best.pop();
-        }
+        KNearestOne((*pts_)[i], static_cast<uint32_t>(i), k, &out[i * k]);
       },
       256);
   return out;
@@ -107,33 +127,64 @@ std::vector<uint32_t> GridEngine::AllKNearest(int k) const {
 
 std::vector<uint32_t> GridEngine::AllNearest() const { return AllKNearest(1); }
 
-void GridEngine::AllWithinRadius(double r, std::vector<uint64_t>* offsets,
-                                 std::vector<uint32_t>* ids) const {
-  const auto& pts = *pts_;
-  const size_t n = pts.size();
-  const int reach = static_cast<int>(std::ceil(r / cell_));
-  std::vector<std::vector<uint32_t>> rows(n);
+std::vector<uint32_t> GridEngine::NearestOf(
+    const std::vector<core::Vec2>& qs) const {
+  std::vector<uint32_t> out(qs.size(), UINT32_MAX);
   core::ParallelFor(
-      0, n,
-      [&](size_t i) {
-        const core::Vec2 q = pts[i];
-        const int cx = CellX(q.x), cy = CellY(q.y);
-        for (int ring = 0; ring <= reach; ++ring) {
-          Ring(cx, cy, ring, [&](uint32_t j) {
-            if (j == i) return;
-            const double dx = pts[j].x - q.x, dy = pts[j].y - q.y;
-            if (dx * dx + dy * dy <= r * r) rows[i].push_back(j);
-          });
+      0, qs.size(), [&](size_t i) { KNearestOne(qs[i], UINT32_MAX, 1, &out[i]); },
+      256);
+  return out;
+}
+
+// Rows built per block of queries into block buffers, then one CSR.
+template <typename RowFn>
+void GridEngine::Rows(size_t nq, RowFn&& row_fn,
+                      std::vector<uint64_t>* offsets,
+                      std::vector<uint32_t>* ids) const {
+  constexpr size_t kBlock = 256;
+  const size_t blocks = (nq + kBlock - 1) / kBlock;
+  std::vector<std::vector<uint32_t>> hits(blocks);
+  offsets->assign(nq + 1, 0);
+  core::ParallelFor(
+      0, blocks,
+      [&](size_t b) {
+        for (size_t i = b * kBlock; i < std::min(nq, (b + 1) * kBlock); ++i) {
+          const size_t before = hits[b].size();
+          row_fn(i, hits[b]);
+          (*offsets)[i + 1] = hits[b].size() - before;
         }
       },
-      256);
-  offsets->assign(n + 1, 0);
-  for (size_t i = 0; i < n; ++i)
-    (*offsets)[i + 1] = (*offsets)[i] + rows[i].size();
-  ids->resize((*offsets)[n]);
-  core::ParallelFor(0, n, [&](size_t i) {
-    std::copy(rows[i].begin(), rows[i].end(), ids->begin() + (*offsets)[i]);
-  });
+      1);
+  for (size_t i = 0; i < nq; ++i) (*offsets)[i + 1] += (*offsets)[i];
+  ids->resize((*offsets)[nq]);
+  core::ParallelFor(
+      0, blocks,
+      [&](size_t b) {
+        std::copy(hits[b].begin(), hits[b].end(),
+                  ids->begin() + (*offsets)[b * kBlock]);
+      },
+      1);
+}
+
+void GridEngine::AllWithinRadius(double r, std::vector<uint64_t>* offsets,
+                                 std::vector<uint32_t>* ids) const {
+  Rows(
+      pts_->size(),
+      [&](size_t i, std::vector<uint32_t>& row) {
+        RadiusOne((*pts_)[i], static_cast<uint32_t>(i), r, row);
+      },
+      offsets, ids);
+}
+
+void GridEngine::WithinRadiusOf(const std::vector<core::Vec2>& qs, double r,
+                                std::vector<uint64_t>* offsets,
+                                std::vector<uint32_t>* ids) const {
+  Rows(
+      qs.size(),
+      [&](size_t i, std::vector<uint32_t>& row) {
+        RadiusOne(qs[i], UINT32_MAX, r, row);
+      },
+      offsets, ids);
 }
 
 }  // namespace kinetri::bench

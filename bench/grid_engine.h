@@ -3,6 +3,7 @@
 #ifndef KINETRI_BENCH_GRID_ENGINE_H_
 #define KINETRI_BENCH_GRID_ENGINE_H_
 
+#include <cstddef>
 #include <cstdint>
 #include <vector>
 
@@ -21,8 +22,23 @@ class GridEngine {
   // Number of other points within r of each point (and their ids, CSR).
   void AllWithinRadius(double r, std::vector<uint64_t>* offsets,
                        std::vector<uint32_t>* ids) const;
+  // Nearest point of each query position.
+  std::vector<uint32_t> NearestOf(const std::vector<core::Vec2>& qs) const;
+  // Points within r of each query position (CSR).
+  void WithinRadiusOf(const std::vector<core::Vec2>& qs, double r,
+                      std::vector<uint64_t>* offsets,
+                      std::vector<uint32_t>* ids) const;
 
  private:
+  // k nearest points of q other than `skip`, closest first, into out[0..k).
+  void KNearestOne(const core::Vec2& q, uint32_t skip, int k,
+                   uint32_t* out) const;
+  // Points within r of q other than `skip`, appended to row.
+  void RadiusOne(const core::Vec2& q, uint32_t skip, double r,
+                 std::vector<uint32_t>& row) const;
+  template <typename RowFn>
+  void Rows(size_t nq, RowFn&& row_fn, std::vector<uint64_t>* offsets,
+            std::vector<uint32_t>* ids) const;
   template <typename Visit>
   void Ring(int cx, int cy, int ring, Visit&& visit) const;
   int CellX(double x) const;

@@ -1,16 +1,19 @@
 // kinetri-bench: cost per simulation step of Kinetri and its peers (CGAL
-// rebuild, a uniform grid, nanoflann), on moving points, in one process.
+// rebuild, CGAL move(), a uniform grid, nanoflann), on moving points, in one
+// process.
 //
 //   kinetri-bench --quick                 # N up to 100K, a few steps
 //   kinetri-bench --json=out.json         # full matrix, JSON records
 //
 // For every workload and N, each engine runs the same steps; phases are timed
 // separately (update/rebuild, all-points NN, all-points 8-NN, radius with a
-// mean of 8 and 32 neighbours). On the first measured step all engines'
-// answers are compared (by exact squared distances, so ties cannot differ);
-// an engine that disagrees is reported as FAILED and not timed.
+// typical 8 and 32 neighbours, NN and radius of arbitrary query points). On
+// the first measured step all engines' answers are compared (squared
+// distances, radius counts, Delaunay edge sets for the CGAL engines); an
+// engine that disagrees is reported as FAILED and not timed.
 #include <CGAL/Delaunay_triangulation_2.h>
 #include <CGAL/Exact_predicates_inexact_constructions_kernel.h>
+#include <CGAL/Triangulation_vertex_base_with_info_2.h>
 
 #include <algorithm>
 #include <chrono>
@@ -22,6 +25,7 @@
 #include <memory>
 #include <nanoflann.hpp>
 #include <random>
+#include <set>
 #include <string>
 #include <thread>
 #include <vector>
@@ -38,12 +42,21 @@
 #include "core/queries.h"
 #include "core/triangulation.h"
 
-ABSL_FLAG(bool, quick, false, "reduced matrix: N = 10K, 100K; 5 steps");
+ABSL_FLAG(bool, quick, false,
+          "reduced matrix: N = 10K, 100K; 3 steps; 3 s per engine");
 ABSL_FLAG(std::string, json, "", "write the records to this JSON file");
 ABSL_FLAG(std::string, sizes, "", "comma-separated N (overrides defaults)");
-ABSL_FLAG(std::string, workloads, "brownian,shear,vortex,clustered",
+ABSL_FLAG(std::string, workloads, "paper,brownian,shear,vortex,clustered",
           "comma-separated workloads");
-ABSL_FLAG(int, steps, 0, "measured steps (0: 5 quick, 20 full)");
+ABSL_FLAG(int, steps, 0, "measured steps after a warm-up (0: 3 quick, 20 full)");
+ABSL_FLAG(double, engine_budget_s, 0,
+          "stop timing an engine on a workload/N once its measured time "
+          "passes this many seconds (0: 3 quick, 90 full); its record then "
+          "says how many steps it ran");
+ABSL_FLAG(int, query_points, 100000, "arbitrary query points per step");
+ABSL_FLAG(std::string, engines, "",
+          "comma-separated engines to run (default: all of kinetri, "
+          "kinetri-1t, cgal-rebuild, cgal-move, grid, nanoflann)");
 
 namespace {
 
@@ -69,6 +82,20 @@ Workload MakeWorkload(const std::string& name, double param, size_t n,
   std::uniform_real_distribution<double> u(0, 1);
   const double spacing = 1.0 / std::sqrt(double(n));
   Workload w{name, param, std::vector<Vec2>(n), {}};
+  if (name == "paper") {
+    // The research note's DLA benchmark as its code runs it: box of side
+    // 1e4, half of the particles (the aggregate) never move, the other half
+    // move at a constant velocity of `param` per step in a random direction.
+    // Kept in double precision, so the motion is real (see REFERENCES.md).
+    for (auto& p : w.start) p = {1e4 * u(rng), 1e4 * u(rng)};
+    std::vector<Vec2> vel(n, Vec2{0, 0});
+    for (size_t i = 1; i < n; i += 2) {
+      const double a = 2 * M_PI * u(rng);
+      vel[i] = {param * std::cos(a), param * std::sin(a)};
+    }
+    w.motion = [vel](const std::vector<Vec2>&, int) { return vel; };
+    return w;
+  }
   if (name == "clustered") {
     // 90% of the points in 20 tight Gaussian clusters, 10% uniform: about
     // 1000x density contrast.
@@ -122,10 +149,13 @@ using kinetri::bench::NanoCloud;
 using kinetri::bench::NanoTree;
 
 // Answers of one engine for the cross-check: per point, the squared
-// distances of its k nearest others, and its radius counts.
+// distances of its k nearest others and its radius counts; per query point,
+// the squared distance to its nearest point and its radius count; for the
+// CGAL engines, the Delaunay edge set.
 struct Answers {
-  std::vector<double> nn_d2, knn_d2;
-  std::vector<uint64_t> r8_count, r32_count;
+  std::vector<double> nn_d2, knn_d2, qnn_d2;
+  std::vector<uint64_t> r8_count, r32_count, qr8_count;
+  std::vector<std::pair<uint32_t, uint32_t>> edges;
 };
 
 double D2(const Vec2& a, const Vec2& b) {
@@ -149,6 +179,30 @@ double Quantile(std::vector<double> v, double q) {
   std::sort(v.begin(), v.end());
   return v[std::min(v.size() - 1,
                     static_cast<size_t>(q * (v.size() - 1) + 0.5))];
+}
+
+using K = CGAL::Exact_predicates_inexact_constructions_kernel;
+using Vb = CGAL::Triangulation_vertex_base_with_info_2<uint32_t, K>;
+using Tds = CGAL::Triangulation_data_structure_2<Vb>;
+using CgalDt = CGAL::Delaunay_triangulation_2<K, Tds>;
+
+std::unique_ptr<CgalDt> CgalBuild(const std::vector<Vec2>& pos) {
+  std::vector<std::pair<K::Point_2, uint32_t>> p;
+  p.reserve(pos.size());
+  for (uint32_t i = 0; i < pos.size(); ++i)
+    p.emplace_back(K::Point_2(pos[i].x, pos[i].y), i);
+  return std::make_unique<CgalDt>(p.begin(), p.end());  // spatially sorted
+}
+
+std::vector<std::pair<uint32_t, uint32_t>> CgalEdges(const CgalDt& dt) {
+  std::vector<std::pair<uint32_t, uint32_t>> e;
+  for (auto it = dt.finite_edges_begin(); it != dt.finite_edges_end(); ++it) {
+    const uint32_t a = it->first->vertex(CgalDt::cw(it->second))->info();
+    const uint32_t b = it->first->vertex(CgalDt::ccw(it->second))->info();
+    e.emplace_back(std::min(a, b), std::max(a, b));
+  }
+  std::sort(e.begin(), e.end());
+  return e;
 }
 
 std::string MachineJson() {
@@ -176,10 +230,13 @@ std::string MachineJson() {
 
 int main(int argc, char** argv) {
   absl::SetProgramUsageMessage(
-      "Benchmarks Kinetri against CGAL (rebuild), a uniform grid and "
-      "nanoflann on moving points; per-phase median and p90 per step; "
-      "answers cross-checked on the first step. --quick for a short run, "
-      "--json=FILE for machine-readable records.");
+      "Benchmarks Kinetri against CGAL (rebuild and move()), a uniform grid "
+      "and nanoflann on moving points, all in one process: per-phase median "
+      "and p90 milliseconds per step, answers cross-checked on the first "
+      "step.\n  kinetri-bench --quick            N = 10K, 100K (< 1 min)\n"
+      "  kinetri-bench --json=out.json    N = 10K, 100K, 1M, 20 steps\n"
+      "Workloads: paper (the note's DLA set-up), brownian 0.01/0.1/1 "
+      "spacings, shear, vortex, clustered.");
   absl::ParseCommandLine(argc, argv);
   const bool quick = absl::GetFlag(FLAGS_quick);
   std::vector<size_t> sizes = quick
@@ -192,24 +249,49 @@ int main(int argc, char** argv) {
     }
   }
   const int steps = absl::GetFlag(FLAGS_steps) > 0 ? absl::GetFlag(FLAGS_steps)
-                                                   : (quick ? 5 : 20);
+                                                   : (quick ? 3 : 20);
+  const double budget_ms =
+      1000.0 * (absl::GetFlag(FLAGS_engine_budget_s) > 0
+                    ? absl::GetFlag(FLAGS_engine_budget_s)
+                    : (quick ? 3.0 : 90.0));
+  const size_t num_queries =
+      static_cast<size_t>(std::max(0, absl::GetFlag(FLAGS_query_points)));
+  std::set<std::string> engines = {"kinetri",      "kinetri-1t", "cgal-rebuild",
+                                   "cgal-move",    "grid",       "nanoflann"};
+  if (!absl::GetFlag(FLAGS_engines).empty()) {
+    std::set<std::string> want;
+    for (auto e : absl::StrSplit(absl::GetFlag(FLAGS_engines), ',')) {
+      if (!engines.count(std::string(e))) {
+        std::fprintf(stderr, "unknown engine '%s'\n", std::string(e).c_str());
+        return 2;
+      }
+      want.insert(std::string(e));
+    }
+    want.insert("kinetri");  // the reference of the cross-check
+    engines = want;
+  }
   std::vector<std::pair<std::string, double>> loads;
   for (auto w : absl::StrSplit(absl::GetFlag(FLAGS_workloads), ',')) {
     const std::string name(w);
     if (name == "brownian") {
       for (double s : {0.01, 0.1, 1.0}) loads.push_back({name, s});
-    } else if (name == "shear") {
-      loads.push_back({name, 0.5});
-    } else if (name == "vortex") {
+    } else if (name == "paper") {
+      loads.push_back({name, 5e-4});
+    } else if (name == "shear" || name == "vortex") {
       loads.push_back({name, 0.5});
     } else if (name == "clustered") {
       loads.push_back({name, 0.1});
+    } else {
+      std::fprintf(stderr, "unknown workload '%s'\n", name.c_str());
+      return 2;
     }
   }
   const int threads = static_cast<int>(std::thread::hardware_concurrency());
+  const auto run_start = Clock::now();
   std::vector<Record> records;
-  std::printf("%-10s %6s %8s %-14s %-9s %10s %10s\n", "workload", "param", "n",
-              "engine", "phase", "median_ms", "p90_ms");
+  bool any_failed = false;
+  std::printf("%-10s %6s %8s %-13s %-14s %10s %10s %5s\n", "workload", "param",
+              "n", "engine", "phase", "median_ms", "p90_ms", "steps");
   for (const auto& [wname, param] : loads) {
     for (size_t n : sizes) {
       Workload w = MakeWorkload(wname, param, n, 12345);
@@ -217,6 +299,7 @@ int main(int argc, char** argv) {
       // median distance to the 8th / 32nd neighbour over a sample (for
       // clustered sets the uniform-density formula would give thousands).
       double r8 = 0, r32 = 0;
+      Vec2 lo = w.start[0], hi = w.start[0];
       {
         NanoCloud cloud{&w.start};
         NanoTree tree(2, cloud, nanoflann::KDTreeSingleIndexAdaptorParams(10));
@@ -230,20 +313,63 @@ int main(int argc, char** argv) {
           d8.push_back(dd[8]);
           d32.push_back(dd[32]);
         }
-        r8 = std::sqrt(Quantile(d8, 0.5));
-        r32 = std::sqrt(Quantile(d32, 0.5));
+        // Nudged off the sampled distances so that no pair lies exactly on
+        // the circle (engines legitimately differ on < vs <= there).
+        r8 = std::sqrt(Quantile(d8, 0.5)) * (1 + 0x1p-20);
+        r32 = std::sqrt(Quantile(d32, 0.5)) * (1 + 0x1p-20);
+        for (const Vec2& p : w.start) {
+          lo = {std::min(lo.x, p.x), std::min(lo.y, p.y)};
+          hi = {std::max(hi.x, p.x), std::max(hi.y, p.y)};
+        }
       }
-      // Engines keep their own copy of the positions and move it.
+      // Arbitrary query points: uniform over the points' bounding box.
+      std::vector<Vec2> qs(num_queries);
+      {
+        std::mt19937_64 qrng(777);
+        std::uniform_real_distribution<double> u(0, 1);
+        for (auto& q : qs)
+          q = {lo.x + (hi.x - lo.x) * u(qrng), lo.y + (hi.y - lo.y) * u(qrng)};
+      }
       std::map<std::string, std::map<std::string, std::vector<double>>> times;
-      std::map<std::string, bool> failed;
-      auto tri = kc::Triangulation::Create(w.start);
-      kc::TriangulationOptions one;
-      one.num_threads = 1;
-      auto tri1 = kc::Triangulation::Create(w.start, one);
+      std::map<std::string, double> spent;
+      std::map<std::string, bool> failed, stopped;
+      auto on = [&](const std::string& e) {
+        return engines.count(e) && !failed[e] && !stopped[e];
+      };
+      std::unique_ptr<kc::Triangulation> tri, tri1;
+      {
+        auto t = kc::Triangulation::Create(w.start);
+        tri = std::make_unique<kc::Triangulation>(*std::move(t));
+        if (engines.count("kinetri-1t")) {
+          kc::TriangulationOptions one;
+          one.num_threads = 1;
+          auto t1 = kc::Triangulation::Create(w.start, one);
+          tri1 = std::make_unique<kc::Triangulation>(*std::move(t1));
+        }
+      }
+      std::unique_ptr<CgalDt> moving;  // CGAL move(): handles by point id
+      std::vector<CgalDt::Vertex_handle> handles;
+      if (engines.count("cgal-move")) {
+        moving = CgalBuild(w.start);
+        handles.resize(n);
+        for (auto v = moving->finite_vertices_begin();
+             v != moving->finite_vertices_end(); ++v) {
+          handles[v->info()] = v;
+        }
+      }
       std::vector<Vec2> pos = w.start;
       std::vector<uint32_t> all(n);
       for (uint32_t i = 0; i < n; ++i) all[i] = i;
+      auto last_progress = Clock::now();
       for (int s = -1; s < steps; ++s) {  // step -1: warm-up
+        if (std::chrono::duration<double>(Clock::now() - last_progress)
+                .count() > 5.0) {
+          std::fprintf(stderr, "[bench] %s %g n=%zu: step %d of %d (%.0f s)\n",
+                       wname.c_str(), param, n, s + 1, steps,
+                       std::chrono::duration<double>(Clock::now() - run_start)
+                           .count());
+          last_progress = Clock::now();
+        }
         const auto d = w.motion(pos, s);
         for (size_t i = 0; i < n; ++i)
           pos[i] = {pos[i].x + d[i].x, pos[i].y + d[i].y};
@@ -251,54 +377,81 @@ int main(int argc, char** argv) {
         const bool check = s == 0;
         std::map<std::string, Answers> ans;
         auto rec = [&](const std::string& e, const std::string& ph, double ms) {
-          if (measure) times[e][ph].push_back(ms);
+          if (!measure) return;
+          times[e][ph].push_back(ms);
+          spent[e] += ms;
         };
-        // Kinetri (all threads, and 1 thread for update + NN).
-        for (auto* t : {&tri, &tri1}) {
-          const std::string e = t == &tri ? "kinetri" : "kinetri-1t";
+        // Kinetri (all threads; 1 thread for update + NN).
+        for (auto* t : {tri.get(), tri1.get()}) {
+          const std::string e = t == tri.get() ? "kinetri" : "kinetri-1t";
+          if (t == nullptr || !on(e)) continue;
           auto t0 = Clock::now();
-          auto rep = (*t)->ApplyDisplacements(kc::DisplacementBatch::Dense(d));
+          auto rep = t->ApplyDisplacements(kc::DisplacementBatch::Dense(d));
           rec(e, "update", Ms(t0));
-          if (!rep.ok()) failed[e] = true;
           t0 = Clock::now();
-          auto nn = kc::AllNearestNeighbors(**t);
+          auto nn = kc::AllNearestNeighbors(*t);
           rec(e, "all_nn", Ms(t0));
-          if (t != &tri) continue;
+          if (!rep.ok() || !nn.ok()) {
+            failed[e] = true;
+            continue;
+          }
+          Answers& a = ans[e];
+          if (check) {
+            for (uint32_t i = 0; i < n; ++i)
+              a.nn_d2.push_back(D2(pos[i], pos[nn->ids[nn->offsets[i]]]));
+          }
+          if (t != tri.get()) continue;
           t0 = Clock::now();
-          auto knn = kc::KNearestOfPoints(**t, all, 8, true);
+          auto knn = kc::KNearestOfPoints(*t, all, 8, true);
           rec(e, "knn8", Ms(t0));
           t0 = Clock::now();
-          auto q8 = kc::WithinRadiusOfPoints(**t, all, r8, true, 0);
+          auto q8 = kc::WithinRadiusOfPoints(*t, all, r8, true, 0);
           rec(e, "radius8", Ms(t0));
           t0 = Clock::now();
-          auto q32 = kc::WithinRadiusOfPoints(**t, all, r32, true, 0);
+          auto q32 = kc::WithinRadiusOfPoints(*t, all, r32, true, 0);
           rec(e, "radius32", Ms(t0));
+          t0 = Clock::now();
+          auto pnn = kc::Nearest(*t, qs);
+          rec(e, "points_nn", Ms(t0));
+          t0 = Clock::now();
+          auto pr8 = kc::WithinRadius(*t, qs, r8, 0);
+          rec(e, "points_radius8", Ms(t0));
+          if (!knn.ok() || !q8.ok() || !q32.ok() || !pnn.ok() || !pr8.ok()) {
+            failed[e] = true;
+            continue;
+          }
           if (check) {
-            Answers& a = ans[e];
             for (uint32_t i = 0; i < n; ++i) {
-              a.nn_d2.push_back(D2(pos[i], pos[nn->ids[nn->offsets[i]]]));
-              for (uint64_t k = knn->offsets[i]; k < knn->offsets[i + 1]; ++k) {
+              for (uint64_t k = knn->offsets[i]; k < knn->offsets[i + 1]; ++k)
                 a.knn_d2.push_back(D2(pos[i], pos[knn->ids[k]]));
-              }
               a.r8_count.push_back(q8->row_size(i));
               a.r32_count.push_back(q32->row_size(i));
             }
+            for (size_t i = 0; i < qs.size(); ++i) {
+              a.qnn_d2.push_back(D2(qs[i], pos[pnn->ids[pnn->offsets[i]]]));
+              a.qr8_count.push_back(pr8->row_size(i));
+            }
           }
         }
-        {  // CGAL rebuild (spatially sorted insertion)
-          using K = CGAL::Exact_predicates_inexact_constructions_kernel;
-          std::vector<K::Point_2> p;
-          p.reserve(n);
-          for (const auto& v : pos) p.emplace_back(v.x, v.y);
+        if (on("cgal-rebuild")) {  // spatially sorted insertion
           const auto t0 = Clock::now();
-          CGAL::Delaunay_triangulation_2<K> dt(p.begin(), p.end());
+          auto dt = CgalBuild(pos);
           rec("cgal-rebuild", "update", Ms(t0));
-          if (dt.number_of_vertices() == 0) failed["cgal-rebuild"] = true;
+          if (check) ans["cgal-rebuild"].edges = CgalEdges(*dt);
         }
-        {  // grid
+        if (on("cgal-move")) {  // CGAL's own kinetic path: move() each vertex
+          const auto t0 = Clock::now();
+          for (uint32_t i = 0; i < n; ++i) {
+            handles[i] =
+                moving->move(handles[i], K::Point_2(pos[i].x, pos[i].y));
+          }
+          rec("cgal-move", "update", Ms(t0));
+          if (check) ans["cgal-move"].edges = CgalEdges(*moving);
+        }
+        if (on("grid")) {
           kinetri::bench::GridEngine grid;
           auto t0 = Clock::now();
-          grid.Build(pos, 1.0 / std::sqrt(double(n)));
+          grid.Build(pos, std::sqrt((hi.x - lo.x) * (hi.y - lo.y) / n));
           rec("grid", "update", Ms(t0));
           t0 = Clock::now();
           auto nn = grid.AllNearest();
@@ -306,17 +459,25 @@ int main(int argc, char** argv) {
           t0 = Clock::now();
           auto knn = grid.AllKNearest(8);
           rec("grid", "knn8", Ms(t0));
-          std::vector<uint64_t> off8, off32;
-          std::vector<uint32_t> ids8, ids32;
-          kinetri::bench::GridEngine g8;
           t0 = Clock::now();
-          g8.Build(pos, r8);
-          g8.AllWithinRadius(r8, &off8, &ids8);
+          auto pnn = grid.NearestOf(qs);
+          rec("grid", "points_nn", Ms(t0));
+          // Radius phases rebuild the grid with cell = r (its best case).
+          std::vector<uint64_t> off8, off32, offq;
+          std::vector<uint32_t> ids8, ids32, idsq;
+          kinetri::bench::GridEngine gr;
+          t0 = Clock::now();
+          gr.Build(pos, r8);
+          gr.AllWithinRadius(r8, &off8, &ids8);
           rec("grid", "radius8", Ms(t0));
           t0 = Clock::now();
-          g8.Build(pos, r32);
-          g8.AllWithinRadius(r32, &off32, &ids32);
+          gr.Build(pos, r32);
+          gr.AllWithinRadius(r32, &off32, &ids32);
           rec("grid", "radius32", Ms(t0));
+          t0 = Clock::now();
+          gr.Build(pos, r8);
+          gr.WithinRadiusOf(qs, r8, &offq, &idsq);
+          rec("grid", "points_radius8", Ms(t0));
           if (check) {
             Answers& a = ans["grid"];
             for (uint32_t i = 0; i < n; ++i) {
@@ -326,15 +487,19 @@ int main(int argc, char** argv) {
               a.r8_count.push_back(off8[i + 1] - off8[i]);
               a.r32_count.push_back(off32[i + 1] - off32[i]);
             }
+            for (size_t i = 0; i < qs.size(); ++i) {
+              a.qnn_d2.push_back(D2(qs[i], pos[pnn[i]]));
+              a.qr8_count.push_back(offq[i + 1] - offq[i]);
+            }
           }
         }
-        {  // nanoflann
+        if (on("nanoflann")) {
           NanoCloud cloud{&pos};
           auto t0 = Clock::now();
           NanoTree tree(2, cloud,
                         nanoflann::KDTreeSingleIndexAdaptorParams(10));
           rec("nanoflann", "update", Ms(t0));
-          std::vector<uint32_t> nn(n), knn(8 * n);
+          std::vector<uint32_t> nn(n), knn(8 * n), pnn(qs.size());
           t0 = Clock::now();
           kc::ParallelFor(
               0, n,
@@ -362,22 +527,45 @@ int main(int argc, char** argv) {
               },
               256);
           rec("nanoflann", "knn8", Ms(t0));
-          std::vector<uint64_t> c8(n), c32(n);
-          for (auto [rr, cnt, ph] : {std::make_tuple(r8, &c8, "radius8"),
-                                     std::make_tuple(r32, &c32, "radius32")}) {
-            t0 = Clock::now();
+          // Radius searches count their matches (results unsorted, reused
+          // per-thread buffers: nanoflann's fastest mode).
+          auto radius = [&](const std::vector<Vec2>& from, double rr,
+                            bool self, std::vector<uint64_t>* cnt) {
+            cnt->assign(from.size(), 0);
+            nanoflann::SearchParams params;
+            params.sorted = false;
             kc::ParallelFor(
-                0, n,
+                0, from.size(),
                 [&](size_t i) {
-                  std::vector<std::pair<uint32_t, double>> m;
-                  const double q[2] = {pos[i].x, pos[i].y};
-                  (*cnt)[i] = tree.radiusSearch(q, rr * rr, m,
-                                                nanoflann::SearchParams()) -
-                              1;
+                  thread_local std::vector<std::pair<uint32_t, double>> m;
+                  const double q[2] = {from[i].x, from[i].y};
+                  (*cnt)[i] = tree.radiusSearch(q, rr * rr, m, params) -
+                              (self ? 1 : 0);
                 },
                 256);
-            rec("nanoflann", ph, Ms(t0));
-          }
+          };
+          std::vector<uint64_t> c8, c32, cq;
+          t0 = Clock::now();
+          radius(pos, r8, true, &c8);
+          rec("nanoflann", "radius8", Ms(t0));
+          t0 = Clock::now();
+          radius(pos, r32, true, &c32);
+          rec("nanoflann", "radius32", Ms(t0));
+          t0 = Clock::now();
+          kc::ParallelFor(
+              0, qs.size(),
+              [&](size_t i) {
+                uint32_t idx;
+                double d2;
+                const double q[2] = {qs[i].x, qs[i].y};
+                tree.knnSearch(q, 1, &idx, &d2);
+                pnn[i] = idx;
+              },
+              256);
+          rec("nanoflann", "points_nn", Ms(t0));
+          t0 = Clock::now();
+          radius(qs, r8, false, &cq);
+          rec("nanoflann", "points_radius8", Ms(t0));
           if (check) {
             Answers& a = ans["nanoflann"];
             for (uint32_t i = 0; i < n; ++i) {
@@ -387,24 +575,52 @@ int main(int argc, char** argv) {
               a.r8_count.push_back(c8[i]);
               a.r32_count.push_back(c32[i]);
             }
+            for (size_t i = 0; i < qs.size(); ++i) {
+              a.qnn_d2.push_back(D2(qs[i], pos[pnn[i]]));
+              a.qr8_count.push_back(cq[i]);
+            }
           }
         }
-        if (check) {
+        if (check && ans.count("kinetri")) {
+          // Every engine must give the reference's answers; the edge sets of
+          // the CGAL engines must equal Kinetri's Delaunay edges.
           const Answers& ref = ans["kinetri"];
+          const auto kedges = tri->Edges();
           for (const auto& [e, a] : ans) {
-            if (a.nn_d2 != ref.nn_d2 || a.knn_d2 != ref.knn_d2 ||
-                a.r8_count != ref.r8_count || a.r32_count != ref.r32_count) {
+            bool ok = true;
+            auto same = [&](const auto& x, const auto& y) {
+              ok &= x.empty() || y.empty() || x == y;
+            };
+            same(a.nn_d2, ref.nn_d2);
+            same(a.knn_d2, ref.knn_d2);
+            same(a.r8_count, ref.r8_count);
+            same(a.r32_count, ref.r32_count);
+            same(a.qnn_d2, ref.qnn_d2);
+            same(a.qr8_count, ref.qr8_count);
+            if (e.rfind("cgal", 0) == 0) ok &= a.edges == kedges;
+            if (!ok) {
               std::fprintf(stderr, "%s %g n=%zu: %s disagrees with kinetri\n",
                            wname.c_str(), param, n, e.c_str());
               failed[e] = true;
+              any_failed = true;
             }
+          }
+        }
+        for (const auto& [e, ms] : spent) {
+          if (ms > budget_ms && !stopped[e] && s + 1 < steps) {
+            stopped[e] = true;
+            std::fprintf(stderr,
+                         "[bench] %s %g n=%zu: %s stops after %d steps "
+                         "(%.0f s, budget %.0f s)\n",
+                         wname.c_str(), param, n, e.c_str(), s + 1, ms / 1000,
+                         budget_ms / 1000);
           }
         }
       }
       for (const auto& [e, phases] : times) {
         for (const auto& [ph, v] : phases) {
           if (failed[e]) {
-            std::printf("%-10s %6g %8zu %-14s %-9s %10s\n", wname.c_str(),
+            std::printf("%-10s %6g %8zu %-13s %-14s %10s\n", wname.c_str(),
                         param, n, e.c_str(), ph.c_str(), "FAILED");
             continue;
           }
@@ -412,14 +628,14 @@ int main(int argc, char** argv) {
                    param,
                    n,
                    e,
-                   e == "kinetri-1t" || e == "cgal-rebuild" ? 1 : threads,
+                   e == "kinetri-1t" || e.rfind("cgal", 0) == 0 ? 1 : threads,
                    ph,
                    Quantile(v, 0.5),
                    Quantile(v, 0.9),
                    static_cast<int>(v.size())};
-          std::printf("%-10s %6g %8zu %-14s %-9s %10.3f %10.3f\n",
+          std::printf("%-10s %6g %8zu %-13s %-14s %10.3f %10.3f %5d\n",
                       wname.c_str(), param, n, e.c_str(), ph.c_str(),
-                      r.median_ms, r.p90_ms);
+                      r.median_ms, r.p90_ms, r.steps);
           records.push_back(r);
         }
       }
@@ -442,5 +658,7 @@ int main(int argc, char** argv) {
     out << "]}\n";
     std::printf("wrote %s\n", absl::GetFlag(FLAGS_json).c_str());
   }
-  return 0;
+  std::fprintf(stderr, "[bench] done in %.0f s\n",
+               std::chrono::duration<double>(Clock::now() - run_start).count());
+  return any_failed ? 1 : 0;
 }

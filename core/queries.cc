@@ -31,30 +31,41 @@ double Distance(const Vec2& a, const Vec2& b) {
 }
 
 // Per-thread visited marks for graph searches: Begin() starts a new search
-// in O(1) (an epoch counter), Visit() marks a site and says if it was new.
+// in O(1) (an epoch counter) and returns a handle held in registers;
+// Visit() marks a site and says if it was new.
 class VisitMarks {
  public:
-  static VisitMarks& ForThread(uint32_t num_points) {
+  struct Search {
+    uint32_t* stamp;
+    uint32_t epoch;
+    bool Visit(uint32_t site) const {
+      if (stamp[site] == epoch) return false;
+      stamp[site] = epoch;
+      return true;
+    }
+  };
+  static Search Begin(uint32_t num_points) {
     thread_local VisitMarks marks;
     if (marks.stamp_.size() < num_points) marks.stamp_.assign(num_points, 0);
-    return marks;
-  }
-  void Begin() {
-    if (++epoch_ == 0) {
-      std::fill(stamp_.begin(), stamp_.end(), 0);
-      epoch_ = 1;
+    if (++marks.epoch_ == 0) {
+      std::fill(marks.stamp_.begin(), marks.stamp_.end(), 0);
+      marks.epoch_ = 1;
     }
-  }
-  bool Visit(uint32_t site) {
-    if (stamp_[site] == epoch_) return false;
-    stamp_[site] = epoch_;
-    return true;
+    return {marks.stamp_.data(), marks.epoch_};
   }
 
  private:
   std::vector<uint32_t> stamp_;
   uint32_t epoch_ = 0;
 };
+
+// A per-thread scratch vector (one per element type), reached once per
+// query rather than through a thread_local access at every use.
+template <typename T>
+std::vector<T>& Scratch() {
+  thread_local std::vector<T> v;
+  return v;
+}
 
 // Appends the points of `site` (ascending external id) except `skip`.
 void EmitSite(const TriangulationView& v, uint32_t site, const Vec2& q,
@@ -173,40 +184,80 @@ class HintGrid {
   std::vector<uint32_t> cells_;
 };
 
+// Indices 0..keys.size()-1 ordered by key (stable), keys < bound.
+std::vector<uint32_t> OrderByKey(const std::vector<uint32_t>& keys,
+                                 uint32_t bound) {
+  std::vector<uint32_t> order(keys.size());
+  if (keys.size() < bound / 8) {  // small batch: a comparison sort
+    for (uint32_t i = 0; i < order.size(); ++i) order[i] = i;
+    std::stable_sort(order.begin(), order.end(), [&](uint32_t a, uint32_t b) {
+      return keys[a] < keys[b];
+    });
+    return order;
+  }
+  std::vector<uint32_t> count(size_t{bound} + 1, 0);
+  for (uint32_t k : keys) ++count[k + 1];
+  for (uint32_t k = 0; k < bound; ++k) count[k + 1] += count[k];
+  for (uint32_t i = 0; i < keys.size(); ++i) order[count[keys[i]]++] = i;
+  return order;
+}
+
 template <typename RowFn>
 absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
                                       const std::vector<Query>& queries,
                                       QueryLimits limits, RowFn&& row_fn) {
-  const TriangulationView v = t.view();
   const size_t nq = queries.size();
-  std::vector<std::vector<Hit>> rows(nq);
+  // Rows are produced in fixed blocks of queries, each block appending to
+  // its own buffer (no allocation per row), then copied into the CSR.
+  constexpr size_t kBlock = 256;
+  const size_t blocks = (nq + kBlock - 1) / kBlock;
+  std::vector<std::vector<Hit>> block_hits(blocks);
+  std::vector<uint64_t> row_size(nq, 0);
   std::vector<uint8_t> truncated(nq, 0);
-  if (v.num_sites > 0) {
+  // Where each row lives: its block's buffer and its first hit there.
+  std::vector<uint32_t> row_block(nq, 0);
+  std::vector<uint64_t> row_start(nq, 0);
+  if (t.num_sites() > 0) {
+    const TriangulationView v = t.query_view();
     t.Run([&] {
       std::unique_ptr<HintGrid> grid;
       bool need_hints = false;
       for (const Query& q : queries) need_hints |= q.start_site == kNoVertex;
       if (need_hints) grid = std::make_unique<HintGrid>(v);
+      std::vector<uint32_t> start(nq);
+      ParallelFor(0, nq, [&](size_t i) {
+        const Query& q = queries[i];
+        start[i] = q.start_site != kNoVertex ? q.start_site : grid->Hint(q.q);
+      });
+      // Queries run in the order of their start sites (internal ids follow
+      // a Hilbert curve), so that neighbouring queries touch the same
+      // memory; rows still come out in request order.
+      const std::vector<uint32_t> order = OrderByKey(start, v.num_points);
       ParallelFor(
-          0, nq,
-          [&](size_t i) {
-            const Query& q = queries[i];
-            const uint32_t start =
-                q.start_site != kNoVertex ? q.start_site : grid->Hint(q.q);
-            const uint32_t root = WalkToNearestSite(v, q.q, start);
-            // Build the row in a reused buffer, then keep an exact-size copy.
-            thread_local std::vector<Hit> row;
-            row.clear();
-            truncated[i] = row_fn(v, q, root, row) ? 1 : 0;
-            rows[i].assign(row.begin(), row.end());
+          0, blocks,
+          [&](size_t b) {
+            std::vector<Hit>& hits = block_hits[b];
+            std::vector<Hit>& row = Scratch<Hit>();
+            for (size_t j = b * kBlock; j < std::min(nq, (b + 1) * kBlock);
+                 ++j) {
+              const size_t i = order[j];
+              const Query& q = queries[i];
+              const uint32_t root = WalkToNearestSite(v, q.q, start[i]);
+              row.clear();
+              truncated[i] = row_fn(v, q, root, row) ? 1 : 0;
+              row_size[i] = row.size();
+              row_block[i] = static_cast<uint32_t>(b);
+              row_start[i] = hits.size();
+              hits.insert(hits.end(), row.begin(), row.end());
+            }
           },
-          64);
+          1);
     });
   }
   NeighborLists out;
   out.offsets.assign(nq + 1, 0);
   for (size_t i = 0; i < nq; ++i) {
-    out.offsets[i + 1] = out.offsets[i] + rows[i].size();
+    out.offsets[i + 1] = out.offsets[i] + row_size[i];
   }
   if (limits.max_total_results && out.offsets[nq] > limits.max_total_results) {
     return absl::ResourceExhaustedError(absl::StrCat(
@@ -216,11 +267,12 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
   out.ids.resize(out.offsets[nq]);
   out.distances.resize(out.offsets[nq]);
   ParallelFor(0, nq, [&](size_t i) {
-    uint64_t k = out.offsets[i];
-    for (const Hit& h : rows[i]) {
-      out.ids[k] = h.ext;
-      out.distances[k] = h.dist;
-      ++k;
+    const Hit* h = block_hits.empty() ? nullptr
+                                      : block_hits[row_block[i]].data() +
+                                            row_start[i];
+    for (uint64_t k = out.offsets[i]; k < out.offsets[i + 1]; ++k, ++h) {
+      out.ids[k] = h->ext;
+      out.distances[k] = h->dist;
     }
   });
   out.truncated = std::move(truncated);
@@ -245,9 +297,9 @@ absl::StatusOr<NeighborLists> KNearestImpl(const Triangulation& t,
                      return CompareCloserCached(q.q, v.pos[a.second], a.first,
                                                 v.pos[b.second], b.first) > 0;
                    };
-                   thread_local std::vector<Entry> heap;
-                   VisitMarks& marks = VisitMarks::ForThread(v.num_points);
-                   marks.Begin();
+                   std::vector<Entry>& heap = Scratch<Entry>();
+                   const VisitMarks::Search marks =
+                       VisitMarks::Begin(v.num_points);
                    heap.clear();
                    heap.push_back({SquaredDistance(q.q, v.pos[root]), root});
                    marks.Visit(root);
@@ -256,11 +308,13 @@ absl::StatusOr<NeighborLists> KNearestImpl(const Triangulation& t,
                      const uint32_t s = heap.back().second;
                      heap.pop_back();
                      EmitSite(v, s, q.q, q.self_ext, out);
-                     v.ForEachNeighbor(s, [&](uint32_t w) {
-                       if (!marks.Visit(w)) return;
+                     for (const uint32_t* it = v.RowBegin(s);
+                          it != v.RowEnd(s); ++it) {
+                       const uint32_t w = *it;
+                       if (!marks.Visit(w)) continue;
                        heap.push_back({SquaredDistance(q.q, v.pos[w]), w});
                        std::push_heap(heap.begin(), heap.end(), later);
-                     });
+                     }
                    }
                    if (out.size() > want) out.resize(want);
                    return false;
@@ -282,34 +336,45 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
                    // stamps: a constant time check, never a scan. Squared
                    // distances in double decide clear cases, exact predicates
                    // the boundary and near-ties.
-                   VisitMarks& marks = VisitMarks::ForThread(v.num_points);
-                   marks.Begin();
-                   thread_local std::vector<std::pair<double, uint32_t>> found;
+                   const VisitMarks::Search marks =
+                       VisitMarks::Begin(v.num_points);
+                   auto& found = Scratch<std::pair<double, uint32_t>>();
                    found.clear();
                    found.push_back({SquaredDistance(q.q, v.pos[root]), root});
                    marks.Visit(root);
                    const double rr = r * r;
                    for (size_t head = 0; head < found.size(); ++head) {
                      const uint32_t u = found[head].second;
-                     v.ForEachNeighbor(u, [&](uint32_t w) {
-                       if (!marks.Visit(w)) return;
+                     for (const uint32_t* it = v.RowBegin(u);
+                          it != v.RowEnd(u); ++it) {
+                       const uint32_t w = *it;
+                       if (!marks.Visit(w)) continue;
                        const double dw = SquaredDistance(q.q, v.pos[w]);
                        const double tol = internal::kDistErrBound * (dw + rr);
-                       if (dw > rr + tol) return;
+                       if (dw > rr + tol) continue;
                        if (!(dw < rr - tol) &&
                            CompareDistanceToRadius(q.q, v.pos[w], r) > 0) {
-                         return;
+                         continue;
                        }
                        found.push_back({dw, w});
-                     });
+                     }
                    }
-                   std::sort(found.begin(), found.end(),
-                             [&](const std::pair<double, uint32_t>& a,
-                                 const std::pair<double, uint32_t>& b) {
-                               return CompareCloserCached(
-                                          q.q, v.pos[a.second], a.first,
-                                          v.pos[b.second], b.first) < 0;
-                             });
+                   // Closest first: sort on the double squared distances,
+                   // then an insertion pass with the exact order (linear
+                   // unless rounding misordered near-ties).
+                   std::sort(found.begin(), found.end());
+                   for (size_t i = 1; i < found.size(); ++i) {
+                     const auto x = found[i];
+                     size_t j = i;
+                     while (j > 0 &&
+                            CompareCloserCached(q.q, v.pos[x.second], x.first,
+                                                v.pos[found[j - 1].second],
+                                                found[j - 1].first) < 0) {
+                       found[j] = found[j - 1];
+                       --j;
+                     }
+                     found[j] = x;
+                   }
                    for (const auto& f : found)
                      EmitSite(v, f.second, q.q, q.self_ext, out);
                    if (max_results && out.size() > max_results) {
@@ -323,7 +388,7 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
 }  // namespace
 
 absl::StatusOr<NeighborLists> AllNearestNeighbors(const Triangulation& t) {
-  const TriangulationView v = t.view();
+  const TriangulationView v = t.query_view();
   const uint32_t n = v.num_points;
   NeighborLists out;
   out.offsets.assign(size_t{n} + 1, 0);

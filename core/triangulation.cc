@@ -10,6 +10,7 @@
 #include <atomic>
 #include <chrono>
 #include <cmath>
+#include <mutex>
 #include <numeric>
 
 #include "absl/strings/str_cat.h"
@@ -17,6 +18,7 @@
 #include "core/flip_rules.h"
 #include "core/parallel.h"
 #include "core/predicates.h"
+#include "core/site_adjacency.h"
 #include "core/spatial_order.h"
 #include "core/vertex_ops.h"
 
@@ -86,6 +88,12 @@ const char* UpdatePathName(UpdatePath path) {
   return "unknown";
 }
 
+struct Triangulation::AdjacencyCache {
+  std::mutex mu;
+  bool valid = false;
+  SiteAdjacency rows;
+};
+
 Triangulation::Triangulation(Triangulation&&) noexcept = default;
 Triangulation& Triangulation::operator=(Triangulation&&) noexcept = default;
 Triangulation::~Triangulation() = default;
@@ -122,6 +130,7 @@ absl::StatusOr<Triangulation> Triangulation::Create(
   }
   Triangulation t;
   t.options_ = options;
+  t.adjacency_ = std::make_unique<AdjacencyCache>();
   t.arena_ = options.num_threads > 0
                  ? std::make_unique<tbb::task_arena>(options.num_threads)
                  : std::make_unique<tbb::task_arena>();
@@ -151,6 +160,18 @@ TriangulationView Triangulation::view() const {
   v.vertex_edge = mesh_.vertex_edge().data();
   v.line = line_.data();
   v.line_rank = line_rank_.data();
+  return v;
+}
+
+TriangulationView Triangulation::query_view() const {
+  TriangulationView v = view();
+  std::lock_guard<std::mutex> lock(adjacency_->mu);
+  if (!adjacency_->valid) {
+    Run([&] { BuildSiteAdjacency(v, &adjacency_->rows); });
+    adjacency_->valid = true;
+  }
+  v.adj_offsets = adjacency_->rows.offsets.data();
+  v.adj = adjacency_->rows.neighbours.data();
   return v;
 }
 
@@ -756,6 +777,10 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
   if (moved.empty()) {
     report.num_sites = num_sites();
     return report;
+  }
+  {
+    std::lock_guard<std::mutex> lock(adjacency_->mu);
+    adjacency_->valid = false;
   }
 
   Run([&] {

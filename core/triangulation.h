@@ -137,8 +137,13 @@ class Triangulation {
   // corner the smallest id of its coincident points). Empty in line mode.
   std::vector<std::array<uint32_t, 3>> Triangles() const;
 
-  // Read-only view for the query engine and executors.
+  // Read-only view for the executors (mesh only).
   TriangulationView view() const;
+
+  // view() plus contiguous neighbour rows for graph searches. The rows are
+  // built on the first call after a change (in parallel, inside the arena)
+  // and reused until the next step; concurrent callers wait for one build.
+  TriangulationView query_view() const;
 
   // Runs fn inside this triangulation's thread arena.
   template <typename Fn>
@@ -183,6 +188,9 @@ class Triangulation {
   Mesh mesh_;                        // empty in line mode
   std::vector<uint32_t> line_;       // line mode: sites in (x, y) order
   std::vector<uint32_t> line_rank_;  // line mode: rank of each site
+
+  struct AdjacencyCache;
+  std::unique_ptr<AdjacencyCache> adjacency_;
 
   FlipScratch scratch_;
   bool too_tangled_ = false;

@@ -25,12 +25,29 @@ struct TriangulationView {
   // Line mode:
   const uint32_t* line = nullptr;
   const uint32_t* line_rank = nullptr;
+  // Optional contiguous neighbour rows (SiteAdjacency); when set,
+  // ForEachNeighbor reads them instead of walking the mesh.
+  const uint32_t* adj_offsets = nullptr;
+  const uint32_t* adj = nullptr;
 
   KINETRI_HD bool planar() const { return mesh.num_half_edges > 0; }
+
+  // The neighbour row of site v; only with adjacency (query views).
+  KINETRI_HD const uint32_t* RowBegin(uint32_t v) const {
+    return adj + adj_offsets[v];
+  }
+  KINETRI_HD const uint32_t* RowEnd(uint32_t v) const {
+    return adj + adj_offsets[v + 1];
+  }
 
   // Calls fn(w) for every Delaunay neighbour site w of site v.
   template <typename Fn>
   KINETRI_HD void ForEachNeighbor(uint32_t v, Fn&& fn) const {
+    if (adj_offsets != nullptr) {
+      const uint32_t end = adj_offsets[v + 1];
+      for (uint32_t k = adj_offsets[v]; k < end; ++k) fn(adj[k]);
+      return;
+    }
     if (planar()) {
       const uint32_t e0 = vertex_edge[v];
       if (e0 == kNoEdge) return;
