@@ -1,38 +1,110 @@
 """Turns kinetri-bench JSON into the Markdown tables of docs/BENCHMARKS.md.
 
-Usage: /usr/bin/python3 bench/bench_table.py results.json [N]
-Prints, for each workload at size N (default: the largest), the median
-milliseconds per step of every engine and phase.
+Usage: /usr/bin/python3 bench/bench_table.py results.json [N] [--all-sizes]
+       [--goals]
+Prints one table per workload: the median (p90) milliseconds per step of
+every engine and phase at size N (default: the largest; --all-sizes: every
+N); with --goals, the ratios the benchmark issue sets as goals, at N,
+computed from the same run.
 """
 
 import json
 import sys
 from collections import defaultdict
 
-ENGINES = ["kinetri", "kinetri-1t", "cgal-rebuild", "grid", "nanoflann"]
-PHASES = ["update", "all_nn", "knn8", "radius8", "radius32"]
+ENGINES = ["kinetri", "kinetri-1t", "cgal-rebuild", "cgal-move", "grid",
+           "nanoflann"]
+PHASES = ["update", "all_nn", "knn8", "radius8", "radius32", "points_nn",
+          "points_radius8"]
 
 
-def main(path, n=None):
-    doc = json.load(open(path))
-    recs = doc["records"]
-    if n is None:
-        n = max(r["n"] for r in recs)
+def index(recs, n):
     table = defaultdict(dict)
     for r in recs:
         if r["n"] == n:
             table[(r["workload"], r["param"], r["phase"])][r["engine"]] = r
+    return table
+
+
+def med(table, workload, param, phase, engine):
+    r = table.get((workload, param, phase), {}).get(engine)
+    return r["median_ms"] if r else None
+
+
+def goals(table, n):
+    def ratio(a, b):
+        return f"{a / b:.3f}" if a is not None and b is not None else "n/a"
+
+    def add(*xs):
+        return None if any(x is None for x in xs) else sum(xs)
+
+    b = ("brownian", 0.1)
+    c = ("clustered", 0.1)
+    rows = [
+        ("1. update, brownian 0.1: Kinetri / CGAL rebuild", "<= 0.05",
+         ratio(med(table, *b, "update", "kinetri"),
+               med(table, *b, "update", "cgal-rebuild"))),
+        ("2. update + all-NN, brownian 0.1: Kinetri / grid", "<= 1",
+         ratio(add(med(table, *b, "update", "kinetri"),
+                   med(table, *b, "all_nn", "kinetri")),
+               add(med(table, *b, "update", "grid"),
+                   med(table, *b, "all_nn", "grid")))),
+        ("3a. radius (32), clustered: Kinetri / grid", "< 1",
+         ratio(med(table, *c, "radius32", "kinetri"),
+               med(table, *c, "radius32", "grid"))),
+        ("3b. radius (32), brownian 0.1: Kinetri / grid", "<= 1.5",
+         ratio(med(table, *b, "radius32", "kinetri"),
+               med(table, *b, "radius32", "grid"))),
+        ("4. all-points 8-NN, brownian 0.1: Kinetri / nanoflann build+query",
+         "<= 0.333",
+         ratio(med(table, *b, "knn8", "kinetri"),
+               add(med(table, *b, "update", "nanoflann"),
+                   med(table, *b, "knn8", "nanoflann")))),
+    ]
+    print(f"\nGoals at n = {n} (ratios of medians from this run):\n")
+    print("| goal | target | measured |")
+    print("|---|---:|---:|")
+    for name, target, got in rows:
+        print(f"| {name} | {target} | {got} |")
+
+
+def main(argv):
+    path = argv[1]
+    rest = [a for a in argv[2:] if not a.startswith("--")]
+    doc = json.load(open(path))
+    recs = doc["records"]
+    sizes = sorted({r["n"] for r in recs})
+    n = int(rest[0]) if rest else max(sizes)
     m = doc["machine"]
-    print(f"Machine: {m['cpu']}, {m['cores']} cores, commit {m['commit']}; "
-          f"n = {n}; median (p90) ms per step.\n")
-    print("| workload | param | phase | " + " | ".join(ENGINES) + " |")
-    print("|" + "---|" * (3 + len(ENGINES)))
-    for key in sorted(table, key=lambda k: (k[0], k[1], PHASES.index(k[2]))):
-        row = table[key]
-        cells = [f"{row[e]['median_ms']:.2f} ({row[e]['p90_ms']:.2f})"
-                 if e in row else "" for e in ENGINES]
-        print(f"| {key[0]} | {key[1]} | {key[2]} | " + " | ".join(cells) + " |")
+    print(f"Machine: {m['cpu']}, {m['cores']} cores, GPU {m['gpu']}, "
+          f"commit {m['commit']}; median (p90) ms per step; steps measured "
+          f"in the last column.\n")
+    by_load = defaultdict(list)
+    for r in recs:
+        if "--all-sizes" in argv or r["n"] == n:
+            by_load[(r["workload"], r["param"])].append(r)
+    for (w, p), rs in sorted(by_load.items()):
+        present = [e for e in ENGINES if any(r["engine"] == e for r in rs)]
+        cell = {(r["phase"], r["n"], r["engine"]): r for r in rs}
+        print(f"**{w} {p}**\n")
+        print("| phase | n | " + " | ".join(present) + " | steps |")
+        print("|---|---:|" + "---:|" * (len(present) + 1))
+        keys = sorted({(r["phase"], r["n"]) for r in rs},
+                      key=lambda k: (PHASES.index(k[0]), k[1]))
+        for ph, nn in keys:
+            cells, steps = [], set()
+            for e in present:
+                r = cell.get((ph, nn, e))
+                cells.append(f"{r['median_ms']:.2f} ({r['p90_ms']:.2f})"
+                             if r else "")
+                if r:
+                    steps.add(r["steps"])
+            st = "/".join(str(x) for x in sorted(steps))
+            print(f"| {ph} | {nn} | " + " | ".join(cells) + f" | {st} |")
+        print()
+    if "--goals" in argv:
+        goals(index(recs, n), n)
 
 
 if __name__ == "__main__":
-    main(sys.argv[1], int(sys.argv[2]) if len(sys.argv) > 2 else None)
+    main(sys.argv)

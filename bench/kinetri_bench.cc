@@ -48,7 +48,8 @@ ABSL_FLAG(std::string, json, "", "write the records to this JSON file");
 ABSL_FLAG(std::string, sizes, "", "comma-separated N (overrides defaults)");
 ABSL_FLAG(std::string, workloads, "paper,brownian,shear,vortex,clustered",
           "comma-separated workloads");
-ABSL_FLAG(int, steps, 0, "measured steps after a warm-up (0: 3 quick, 20 full)");
+ABSL_FLAG(int, steps, 0,
+          "measured steps after a warm-up (0: 3 quick, 20 full)");
 ABSL_FLAG(double, engine_budget_s, 0,
           "stop timing an engine on a workload/N once its measured time "
           "passes this many seconds (0: 3 quick, 90 full); its record then "
@@ -215,7 +216,10 @@ std::string MachineJson() {
     }
   }
   std::string commit = "unknown";
-  if (FILE* f = popen("git rev-parse --short HEAD 2>/dev/null", "r")) {
+  // The commit of the source tree this binary was built from.
+  const std::string git = absl::StrCat("git -C '", KINETRI_SOURCE_DIR,
+                                       "' rev-parse --short HEAD 2>/dev/null");
+  if (FILE* f = popen(git.c_str(), "r")) {
     char buf[64] = {0};
     if (fgets(buf, sizeof buf, f))
       commit = std::string(buf, strcspn(buf, "\n"));
@@ -250,14 +254,13 @@ int main(int argc, char** argv) {
   }
   const int steps = absl::GetFlag(FLAGS_steps) > 0 ? absl::GetFlag(FLAGS_steps)
                                                    : (quick ? 3 : 20);
-  const double budget_ms =
-      1000.0 * (absl::GetFlag(FLAGS_engine_budget_s) > 0
-                    ? absl::GetFlag(FLAGS_engine_budget_s)
-                    : (quick ? 3.0 : 90.0));
+  const double budget_ms = 1000.0 * (absl::GetFlag(FLAGS_engine_budget_s) > 0
+                                         ? absl::GetFlag(FLAGS_engine_budget_s)
+                                         : (quick ? 3.0 : 90.0));
   const size_t num_queries =
       static_cast<size_t>(std::max(0, absl::GetFlag(FLAGS_query_points)));
-  std::set<std::string> engines = {"kinetri",      "kinetri-1t", "cgal-rebuild",
-                                   "cgal-move",    "grid",       "nanoflann"};
+  std::set<std::string> engines = {"kinetri",   "kinetri-1t", "cgal-rebuild",
+                                   "cgal-move", "grid",       "nanoflann"};
   if (!absl::GetFlag(FLAGS_engines).empty()) {
     std::set<std::string> want;
     for (auto e : absl::StrSplit(absl::GetFlag(FLAGS_engines), ',')) {
@@ -364,10 +367,10 @@ int main(int argc, char** argv) {
       for (int s = -1; s < steps; ++s) {  // step -1: warm-up
         if (std::chrono::duration<double>(Clock::now() - last_progress)
                 .count() > 5.0) {
-          std::fprintf(stderr, "[bench] %s %g n=%zu: step %d of %d (%.0f s)\n",
-                       wname.c_str(), param, n, s + 1, steps,
-                       std::chrono::duration<double>(Clock::now() - run_start)
-                           .count());
+          std::fprintf(
+              stderr, "[bench] %s %g n=%zu: step %d of %d (%.0f s)\n",
+              wname.c_str(), param, n, s + 1, steps,
+              std::chrono::duration<double>(Clock::now() - run_start).count());
           last_progress = Clock::now();
         }
         const auto d = w.motion(pos, s);
@@ -529,8 +532,8 @@ int main(int argc, char** argv) {
           rec("nanoflann", "knn8", Ms(t0));
           // Radius searches count their matches (results unsorted, reused
           // per-thread buffers: nanoflann's fastest mode).
-          auto radius = [&](const std::vector<Vec2>& from, double rr,
-                            bool self, std::vector<uint64_t>* cnt) {
+          auto radius = [&](const std::vector<Vec2>& from, double rr, bool self,
+                            std::vector<uint64_t>* cnt) {
             cnt->assign(from.size(), 0);
             nanoflann::SearchParams params;
             params.sorted = false;
@@ -539,8 +542,8 @@ int main(int argc, char** argv) {
                 [&](size_t i) {
                   thread_local std::vector<std::pair<uint32_t, double>> m;
                   const double q[2] = {from[i].x, from[i].y};
-                  (*cnt)[i] = tree.radiusSearch(q, rr * rr, m, params) -
-                              (self ? 1 : 0);
+                  (*cnt)[i] =
+                      tree.radiusSearch(q, rr * rr, m, params) - (self ? 1 : 0);
                 },
                 256);
           };

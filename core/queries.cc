@@ -7,6 +7,7 @@
 
 #include "absl/container/flat_hash_set.h"
 #include "absl/strings/str_cat.h"
+#include "core/hint_grid.h"
 #include "core/parallel.h"
 #include "core/predicates.h"
 #include "core/query_walks.h"
@@ -138,61 +139,14 @@ absl::StatusOr<std::vector<Query>> PointQueries(const Triangulation& t,
   return out;
 }
 
-// Coarse grid of start sites for walks of large batches.
-class HintGrid {
- public:
-  explicit HintGrid(const TriangulationView& v) : v_(v) {
-    if (v.num_sites == 0) return;
-    lo_ = hi_ = v.pos[v.sites[0]];
-    for (uint32_t i = 0; i < v.num_sites; ++i) {
-      const Vec2& p = v.pos[v.sites[i]];
-      lo_.x = std::min(lo_.x, p.x);
-      lo_.y = std::min(lo_.y, p.y);
-      hi_.x = std::max(hi_.x, p.x);
-      hi_.y = std::max(hi_.y, p.y);
-    }
-    side_ = std::max<uint32_t>(
-        1, static_cast<uint32_t>(std::sqrt(v.num_sites / 4.0)));
-    cells_.assign(size_t{side_} * side_, kNoVertex);
-    for (uint32_t i = 0; i < v.num_sites; ++i) {
-      const uint32_t s = v.sites[i];
-      uint32_t& c = cells_[Cell(v.pos[s])];
-      if (c == kNoVertex) c = s;
-    }
-  }
-
-  uint32_t Hint(const Vec2& q) const {
-    if (cells_.empty()) return v_.num_sites ? v_.sites[0] : kNoVertex;
-    const uint32_t c = cells_[Cell(q)];
-    return c != kNoVertex ? c : v_.sites[0];
-  }
-
- private:
-  size_t Cell(const Vec2& p) const {
-    auto idx = [&](double x, double lo, double hi) -> uint32_t {
-      if (!(hi > lo)) return 0;
-      const double t = (x - lo) / (hi - lo) * side_;
-      if (!(t > 0)) return 0;
-      return std::min<uint32_t>(side_ - 1, static_cast<uint32_t>(t));
-    };
-    return size_t{idx(p.y, lo_.y, hi_.y)} * side_ + idx(p.x, lo_.x, hi_.x);
-  }
-
-  TriangulationView v_;
-  Vec2 lo_, hi_;
-  uint32_t side_ = 0;
-  std::vector<uint32_t> cells_;
-};
-
 // Indices 0..keys.size()-1 ordered by key (stable), keys < bound.
 std::vector<uint32_t> OrderByKey(const std::vector<uint32_t>& keys,
                                  uint32_t bound) {
   std::vector<uint32_t> order(keys.size());
   if (keys.size() < bound / 8) {  // small batch: a comparison sort
     for (uint32_t i = 0; i < order.size(); ++i) order[i] = i;
-    std::stable_sort(order.begin(), order.end(), [&](uint32_t a, uint32_t b) {
-      return keys[a] < keys[b];
-    });
+    std::stable_sort(order.begin(), order.end(),
+                     [&](uint32_t a, uint32_t b) { return keys[a] < keys[b]; });
     return order;
   }
   std::vector<uint32_t> count(size_t{bound} + 1, 0);
@@ -224,10 +178,11 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
       bool need_hints = false;
       for (const Query& q : queries) need_hints |= q.start_site == kNoVertex;
       if (need_hints) grid = std::make_unique<HintGrid>(v);
+      const HintGridView hints = grid ? grid->view() : HintGridView{};
       std::vector<uint32_t> start(nq);
       ParallelFor(0, nq, [&](size_t i) {
         const Query& q = queries[i];
-        start[i] = q.start_site != kNoVertex ? q.start_site : grid->Hint(q.q);
+        start[i] = q.start_site != kNoVertex ? q.start_site : hints.Hint(q.q);
       });
       // Queries run in the order of their start sites (internal ids follow
       // a Hilbert curve), so that neighbouring queries touch the same
@@ -267,9 +222,9 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
   out.ids.resize(out.offsets[nq]);
   out.distances.resize(out.offsets[nq]);
   ParallelFor(0, nq, [&](size_t i) {
-    const Hit* h = block_hits.empty() ? nullptr
-                                      : block_hits[row_block[i]].data() +
-                                            row_start[i];
+    const Hit* h = block_hits.empty()
+                       ? nullptr
+                       : block_hits[row_block[i]].data() + row_start[i];
     for (uint64_t k = out.offsets[i]; k < out.offsets[i + 1]; ++k, ++h) {
       out.ids[k] = h->ext;
       out.distances[k] = h->dist;
@@ -282,43 +237,40 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
 absl::StatusOr<NeighborLists> KNearestImpl(const Triangulation& t,
                                            const std::vector<Query>& queries,
                                            int k, QueryLimits limits) {
-  if (k <= 0) {
-    return absl::InvalidArgumentError(absl::StrCat("k = ", k, " must be > 0"));
-  }
+  if (absl::Status s = CheckQueryK(k); !s.ok()) return s;
   const size_t want = static_cast<size_t>(k);
-  return RunRows(t, queries, limits,
-                 [want](const TriangulationView& v, const Query& q,
-                        uint32_t root, std::vector<Hit>& out) {
-                   // Min-heap on the exact order (squared distances in double
-                   // decide clear cases); visited sites marked with per-thread
-                   // epoch stamps.
-                   using Entry = std::pair<double, uint32_t>;
-                   auto later = [&](const Entry& a, const Entry& b) {
-                     return CompareCloserCached(q.q, v.pos[a.second], a.first,
-                                                v.pos[b.second], b.first) > 0;
-                   };
-                   std::vector<Entry>& heap = Scratch<Entry>();
-                   const VisitMarks::Search marks =
-                       VisitMarks::Begin(v.num_points);
-                   heap.clear();
-                   heap.push_back({SquaredDistance(q.q, v.pos[root]), root});
-                   marks.Visit(root);
-                   while (!heap.empty() && out.size() < want) {
-                     std::pop_heap(heap.begin(), heap.end(), later);
-                     const uint32_t s = heap.back().second;
-                     heap.pop_back();
-                     EmitSite(v, s, q.q, q.self_ext, out);
-                     for (const uint32_t* it = v.RowBegin(s);
-                          it != v.RowEnd(s); ++it) {
-                       const uint32_t w = *it;
-                       if (!marks.Visit(w)) continue;
-                       heap.push_back({SquaredDistance(q.q, v.pos[w]), w});
-                       std::push_heap(heap.begin(), heap.end(), later);
-                     }
-                   }
-                   if (out.size() > want) out.resize(want);
-                   return false;
-                 });
+  return RunRows(
+      t, queries, limits,
+      [want](const TriangulationView& v, const Query& q, uint32_t root,
+             std::vector<Hit>& out) {
+        // Min-heap on the exact order (squared distances in double
+        // decide clear cases); visited sites marked with per-thread
+        // epoch stamps.
+        using Entry = std::pair<double, uint32_t>;
+        auto later = [&](const Entry& a, const Entry& b) {
+          return CompareCloserCached(q.q, v.pos[a.second], a.first,
+                                     v.pos[b.second], b.first) > 0;
+        };
+        std::vector<Entry>& heap = Scratch<Entry>();
+        const VisitMarks::Search marks = VisitMarks::Begin(v.num_points);
+        heap.clear();
+        heap.push_back({SquaredDistance(q.q, v.pos[root]), root});
+        marks.Visit(root);
+        while (!heap.empty() && out.size() < want) {
+          std::pop_heap(heap.begin(), heap.end(), later);
+          const uint32_t s = heap.back().second;
+          heap.pop_back();
+          EmitSite(v, s, q.q, q.self_ext, out);
+          for (const uint32_t* it = v.RowBegin(s); it != v.RowEnd(s); ++it) {
+            const uint32_t w = *it;
+            if (!marks.Visit(w)) continue;
+            heap.push_back({SquaredDistance(q.q, v.pos[w]), w});
+            std::push_heap(heap.begin(), heap.end(), later);
+          }
+        }
+        if (out.size() > want) out.resize(want);
+        return false;
+      });
 }
 
 absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
@@ -326,63 +278,59 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
                                          double r, uint32_t max_results,
                                          QueryLimits limits) {
   if (absl::Status s = CheckRadius(r); !s.ok()) return s;
-  return RunRows(t, queries, limits,
-                 [r, max_results](const TriangulationView& v, const Query& q,
-                                  uint32_t root, std::vector<Hit>& out) {
-                   if (CompareDistanceToRadius(q.q, v.pos[root], r) > 0)
-                     return false;
-                   // Breadth-first over Delaunay neighbours inside the disk,
-                   // from the first site. Visited marks are per-thread epoch
-                   // stamps: a constant time check, never a scan. Squared
-                   // distances in double decide clear cases, exact predicates
-                   // the boundary and near-ties.
-                   const VisitMarks::Search marks =
-                       VisitMarks::Begin(v.num_points);
-                   auto& found = Scratch<std::pair<double, uint32_t>>();
-                   found.clear();
-                   found.push_back({SquaredDistance(q.q, v.pos[root]), root});
-                   marks.Visit(root);
-                   const double rr = r * r;
-                   for (size_t head = 0; head < found.size(); ++head) {
-                     const uint32_t u = found[head].second;
-                     for (const uint32_t* it = v.RowBegin(u);
-                          it != v.RowEnd(u); ++it) {
-                       const uint32_t w = *it;
-                       if (!marks.Visit(w)) continue;
-                       const double dw = SquaredDistance(q.q, v.pos[w]);
-                       const double tol = internal::kDistErrBound * (dw + rr);
-                       if (dw > rr + tol) continue;
-                       if (!(dw < rr - tol) &&
-                           CompareDistanceToRadius(q.q, v.pos[w], r) > 0) {
-                         continue;
-                       }
-                       found.push_back({dw, w});
-                     }
-                   }
-                   // Closest first: sort on the double squared distances,
-                   // then an insertion pass with the exact order (linear
-                   // unless rounding misordered near-ties).
-                   std::sort(found.begin(), found.end());
-                   for (size_t i = 1; i < found.size(); ++i) {
-                     const auto x = found[i];
-                     size_t j = i;
-                     while (j > 0 &&
-                            CompareCloserCached(q.q, v.pos[x.second], x.first,
-                                                v.pos[found[j - 1].second],
-                                                found[j - 1].first) < 0) {
-                       found[j] = found[j - 1];
-                       --j;
-                     }
-                     found[j] = x;
-                   }
-                   for (const auto& f : found)
-                     EmitSite(v, f.second, q.q, q.self_ext, out);
-                   if (max_results && out.size() > max_results) {
-                     out.resize(max_results);
-                     return true;
-                   }
-                   return false;
-                 });
+  return RunRows(
+      t, queries, limits,
+      [r, max_results](const TriangulationView& v, const Query& q,
+                       uint32_t root, std::vector<Hit>& out) {
+        if (CompareDistanceToRadius(q.q, v.pos[root], r) > 0) return false;
+        // Breadth-first over Delaunay neighbours inside the disk,
+        // from the first site. Visited marks are per-thread epoch
+        // stamps: a constant time check, never a scan. Squared
+        // distances in double decide clear cases, exact predicates
+        // the boundary and near-ties.
+        const VisitMarks::Search marks = VisitMarks::Begin(v.num_points);
+        auto& found = Scratch<std::pair<double, uint32_t>>();
+        found.clear();
+        found.push_back({SquaredDistance(q.q, v.pos[root]), root});
+        marks.Visit(root);
+        const double rr = r * r;
+        for (size_t head = 0; head < found.size(); ++head) {
+          const uint32_t u = found[head].second;
+          for (const uint32_t* it = v.RowBegin(u); it != v.RowEnd(u); ++it) {
+            const uint32_t w = *it;
+            if (!marks.Visit(w)) continue;
+            const double dw = SquaredDistance(q.q, v.pos[w]);
+            const double tol = internal::kDistErrBound * (dw + rr);
+            if (dw > rr + tol) continue;
+            if (!(dw < rr - tol) &&
+                CompareDistanceToRadius(q.q, v.pos[w], r) > 0) {
+              continue;
+            }
+            found.push_back({dw, w});
+          }
+        }
+        // Closest first: sort on the double squared distances,
+        // then an insertion pass with the exact order (linear
+        // unless rounding misordered near-ties).
+        std::sort(found.begin(), found.end());
+        for (size_t i = 1; i < found.size(); ++i) {
+          const auto x = found[i];
+          size_t j = i;
+          while (j > 0 && CompareCloserCached(q.q, v.pos[x.second], x.first,
+                                              v.pos[found[j - 1].second],
+                                              found[j - 1].first) < 0) {
+            found[j] = found[j - 1];
+            --j;
+          }
+          found[j] = x;
+        }
+        for (const auto& f : found) EmitSite(v, f.second, q.q, q.self_ext, out);
+        if (max_results && out.size() > max_results) {
+          out.resize(max_results);
+          return true;
+        }
+        return false;
+      });
 }
 
 }  // namespace
@@ -450,6 +398,27 @@ absl::StatusOr<NeighborLists> WithinRadius(const Triangulation& t,
   auto qs = PositionQueries(queries);
   if (!qs.ok()) return qs.status();
   return RadiusImpl(t, *qs, r, max_results, limits);
+}
+
+absl::Status CheckQueryPositions(absl::Span<const Vec2> queries) {
+  for (size_t i = 0; i < queries.size(); ++i) {
+    if (absl::Status s = CheckQueryPosition(queries[i], i); !s.ok()) return s;
+  }
+  return absl::OkStatus();
+}
+
+absl::Status CheckQueryIds(const Triangulation& t,
+                           absl::Span<const uint32_t> ids) {
+  return PointQueries(t, ids, false).status();
+}
+
+absl::Status CheckQueryRadius(double r) { return CheckRadius(r); }
+
+absl::Status CheckQueryK(int k) {
+  if (k <= 0) {
+    return absl::InvalidArgumentError(absl::StrCat("k = ", k, " must be > 0"));
+  }
+  return absl::OkStatus();
 }
 
 absl::StatusOr<NeighborLists> WithinRadiusOfPoints(

@@ -91,6 +91,14 @@ absl::StatusOr<NeighborLists> WithinRadiusOfPoints(
 absl::StatusOr<NeighborLists> Nearest(const Triangulation& t,
                                       absl::Span<const Vec2> queries);
 
+// The argument checks every executor applies (INVALID_ARGUMENT or NOT_FOUND
+// naming the field and index).
+absl::Status CheckQueryPositions(absl::Span<const Vec2> queries);
+absl::Status CheckQueryIds(const Triangulation& t,
+                           absl::Span<const uint32_t> ids);
+absl::Status CheckQueryRadius(double r);
+absl::Status CheckQueryK(int k);
+
 }  // namespace kinetri::core
 
 #endif  // KINETRI_CORE_QUERIES_H_

@@ -5,18 +5,15 @@
 #include <vector>
 
 #include "absl/strings/str_cat.h"
+#include "core/cuda/device_buffer.h"
 #include "core/cuda/device_triangulation.h"
+#include "core/cuda/device_triangulation_impl.h"
 #include "core/flip_rules.h"
+#include "core/hint_grid.h"
 #include "core/query_walks.h"
 
 namespace kinetri::core::cuda {
 namespace {
-
-absl::Status Check(cudaError_t e, const char* what) {
-  if (e == cudaSuccess) return absl::OkStatus();
-  return absl::InternalError(
-      absl::StrCat("CUDA ", what, ": ", cudaGetErrorString(e)));
-}
 
 constexpr int kBlock = 256;
 int Blocks(uint64_t n) { return static_cast<int>((n + kBlock - 1) / kBlock); }
@@ -51,36 +48,7 @@ __global__ void IllegalEdgesKernel(MeshView m, const Vec2* pos, uint32_t ne,
   }
 }
 
-// Device buffer of T.
-template <typename T>
-struct Buffer {
-  Buffer() = default;
-  Buffer(const Buffer&) = delete;
-  Buffer& operator=(const Buffer&) = delete;
-  T* ptr = nullptr;
-  size_t size = 0;
-  absl::Status Upload(const T* host, size_t n) {
-    size = n;
-    if (n == 0) return absl::OkStatus();
-    absl::Status s = Check(cudaMalloc(&ptr, n * sizeof(T)), "malloc");
-    if (!s.ok()) return s;
-    return Check(cudaMemcpy(ptr, host, n * sizeof(T), cudaMemcpyHostToDevice),
-                 "upload");
-  }
-  ~Buffer() {
-    if (ptr) cudaFree(ptr);
-  }
-};
-
 }  // namespace
-
-struct DeviceTriangulation::Impl {
-  Buffer<Vec2> pos;
-  Buffer<uint32_t> ext_of_int, int_of_ext, rep, dup_next, sites, origin, twin,
-      vertex_edge, line, line_rank;
-  TriangulationView view;  // with device pointers
-  uint64_t bytes = 0;
-};
 
 bool DeviceAvailable() {
   int count = 0;
@@ -97,12 +65,20 @@ DeviceTriangulation::~DeviceTriangulation() = default;
 
 uint64_t DeviceTriangulation::device_bytes() const { return impl_->bytes; }
 
+double DeviceTriangulation::bytes_per_point() const {
+  const uint32_t n = impl_->view.num_points;
+  return n ? static_cast<double>(impl_->bytes) / n : 0.0;
+}
+
 absl::StatusOr<DeviceTriangulation> DeviceTriangulation::Upload(
     const Triangulation& t) {
   if (!DeviceAvailable()) {
     return absl::FailedPreconditionError("no CUDA device present");
   }
-  const TriangulationView h = t.view();
+  // The query view carries the neighbour rows; the coarse hint grid gives
+  // position queries their walk starts.
+  const TriangulationView h = t.query_view();
+  const HintGrid grid(h);
   auto impl = std::make_unique<Impl>();
   const uint32_t n = h.num_points;
   const uint32_t ne = h.mesh.num_half_edges;
@@ -124,7 +100,12 @@ absl::StatusOr<DeviceTriangulation> DeviceTriangulation::Upload(
     up(impl->line, h.line, h.num_sites);
     up(impl->line_rank, h.line_rank, n);
   }
+  up(impl->adj_offsets, h.adj_offsets, size_t{n} + 1);
+  up(impl->adj, h.adj, h.adj_offsets[n]);
+  up(impl->hint_cells, grid.cells().data(), grid.cells().size());
   if (!s.ok()) return s;
+  impl->hints = grid.view();
+  impl->hints.cells = impl->hint_cells.ptr;
   TriangulationView& d = impl->view;
   d = h;
   d.pos = impl->pos.ptr;
@@ -138,7 +119,11 @@ absl::StatusOr<DeviceTriangulation> DeviceTriangulation::Upload(
   d.vertex_edge = impl->vertex_edge.ptr;
   d.line = impl->line.ptr;
   d.line_rank = impl->line_rank.ptr;
+  d.adj_offsets = impl->adj_offsets.ptr;
+  d.adj = impl->adj.ptr;
   impl->bytes =
+      (uint64_t{n} + 1 + h.adj_offsets[n] + grid.cells().size()) *
+          sizeof(uint32_t) +
       uint64_t{n} * (sizeof(Vec2) + 5 * sizeof(uint32_t) +
                      (h.planar() ? sizeof(uint32_t) : 0)) +
       uint64_t{h.num_sites} * sizeof(uint32_t) * (h.planar() ? 1 : 2) +

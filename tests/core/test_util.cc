@@ -7,6 +7,8 @@
 #include <algorithm>
 #include <cmath>
 
+#include "core/predicates.h"
+
 namespace kinetri::testing {
 namespace {
 using Kernel = CGAL::Exact_predicates_inexact_constructions_kernel;
@@ -99,6 +101,43 @@ EdgeList EdgesAsPositions(const core::Triangulation& t) {
   }
   std::sort(out.begin(), out.end(), PairLess);
   return out;
+}
+
+std::vector<uint32_t> BruteRank(const std::vector<Vec2>& pts, const Vec2& q,
+                                uint32_t self) {
+  std::vector<uint32_t> ids;
+  for (uint32_t i = 0; i < pts.size(); ++i) {
+    if (i != self) ids.push_back(i);
+  }
+  std::sort(ids.begin(), ids.end(), [&](uint32_t a, uint32_t b) {
+    const int c = core::CompareCloser(q, pts[a], pts[b]);
+    return c != 0 ? c < 0 : a < b;
+  });
+  return ids;
+}
+
+std::vector<Vec2> QueryPoints(const std::vector<Vec2>& pts, size_t m,
+                              uint64_t seed) {
+  std::mt19937_64 rng(seed);
+  Vec2 lo{1e300, 1e300}, hi{-1e300, -1e300};
+  for (const Vec2& p : pts) {
+    lo = {std::min(lo.x, p.x), std::min(lo.y, p.y)};
+    hi = {std::max(hi.x, p.x), std::max(hi.y, p.y)};
+  }
+  if (pts.empty()) lo = {0, 0}, hi = {1, 1};
+  std::uniform_real_distribution<double> u(-0.2, 1.2);
+  std::uniform_int_distribution<size_t> pick(0,
+                                             pts.empty() ? 0 : pts.size() - 1);
+  std::vector<Vec2> q(m);
+  for (size_t i = 0; i < m; ++i) {
+    if (i % 3 == 0 && !pts.empty()) {
+      q[i] = pts[pick(rng)];  // exactly on a point
+    } else {
+      q[i] = {lo.x + u(rng) * (hi.x - lo.x + 1e-9),
+              lo.y + u(rng) * (hi.y - lo.y + 1e-9)};
+    }
+  }
+  return q;
 }
 
 }  // namespace kinetri::testing

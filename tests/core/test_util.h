@@ -31,6 +31,15 @@ EdgeList EdgesAsPositions(const core::Triangulation& t);
 
 bool operator<(const Vec2& a, const Vec2& b);
 
+// All point ids ranked from q in the order of queries.h (exact distance,
+// nudged ties, then id), minus `self` (kNoVertex: none).
+std::vector<uint32_t> BruteRank(const std::vector<Vec2>& pts, const Vec2& q,
+                                uint32_t self);
+// m query positions around the points' bounding box (a third of them
+// exactly on points).
+std::vector<Vec2> QueryPoints(const std::vector<Vec2>& pts, size_t m,
+                              uint64_t seed);
+
 }  // namespace kinetri::testing
 
 #endif  // KINETRI_TESTS_CORE_TEST_UTIL_H_

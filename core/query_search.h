@@ -1,0 +1,153 @@
+// Per-query graph searches that need no visited marks and no heap memory,
+// host+device (one query per CUDA thread; the CPU tests run the same code).
+//
+//  * RadiusSearch enumerates the sites within r of q by reverse search on
+//    the Delaunay graph: the parent of a site w other than the nearest site
+//    is its neighbour that comes first from q (FirstNeighbor), which is
+//    strictly closer than w (greedy property, queries.h) and so lies in the
+//    disk whenever w does. The parent links form a tree over the sites in
+//    the disk rooted at the nearest site; the search walks that tree depth
+//    first without a stack: after finishing a site it goes back to its
+//    parent and resumes the parent's row after it. Each site in the disk is
+//    reported exactly once; memory is O(1) per query.
+//  * KNearestSearch finds the k first points of the exact order: it counts
+//    the points in disks of growing radius (starting from the distance of
+//    the farthest neighbour of the nearest site), and once a disk holds at
+//    least k points (the query's own point excluded) it keeps the k first of
+//    them in a caller-provided sorted buffer. Every point among the k first
+//    is no farther than the k-th point in the disk, hence in the disk.
+//
+// Both need the neighbour rows of a query view (TriangulationView::adj).
+#ifndef KINETRI_CORE_QUERY_SEARCH_H_
+#define KINETRI_CORE_QUERY_SEARCH_H_
+
+#include <cstdint>
+
+#include "core/hd.h"
+#include "core/predicates.h"
+#include "core/query_walks.h"
+#include "core/triangulation_view.h"
+
+namespace kinetri::core {
+
+// Site w lies in the closed disk of radius r around q (exact).
+KINETRI_HD inline bool InDisk(const TriangulationView& v, const Vec2& q,
+                              double r, uint32_t w) {
+  const double d2 = SquaredDistance(q, v.pos[w]);
+  const double rr = r * r;
+  const double tol = internal::kDistErrBound * (d2 + rr);
+  if (d2 < rr - tol) return true;
+  if (d2 > rr + tol) return false;
+  return CompareDistanceToRadius(q, v.pos[w], r) <= 0;
+}
+
+// Calls emit(site) for every site within r of q; root must be the nearest
+// site of q (WalkToNearestSite). Returns the number of sites emitted.
+template <typename Emit>
+KINETRI_HD uint32_t RadiusSearch(const TriangulationView& v, const Vec2& q,
+                                 double r, uint32_t root, Emit&& emit) {
+  if (!InDisk(v, q, r, root)) return 0;
+  uint32_t count = 1;
+  emit(root);
+  uint32_t u = root;
+  const uint32_t* it = v.RowBegin(u);
+  while (true) {
+    bool descended = false;
+    const double du = SquaredDistance(q, v.pos[u]);
+    for (; it != v.RowEnd(u); ++it) {
+      const uint32_t w = *it;
+      if (w == root) continue;
+      // A child is farther than its parent (clear cases in double).
+      const double dw = SquaredDistance(q, v.pos[w]);
+      if (dw < du - internal::kDistErrBound * (du + dw)) continue;
+      if (!InDisk(v, q, r, w)) continue;
+      if (FirstNeighbor(v, q, w, /*include_self=*/false) != u) continue;
+      ++count;
+      emit(w);
+      u = w;
+      it = v.RowBegin(u);
+      descended = true;
+      break;
+    }
+    if (descended) continue;
+    if (u == root) return count;
+    // Back to the parent, just after u in its row.
+    const uint32_t p = FirstNeighbor(v, q, u, false);
+    it = v.RowBegin(p);
+    while (*it != u) ++it;
+    ++it;
+    u = p;
+  }
+}
+
+// Number of points (not sites) within r of q, `self` (an external id, or
+// kNoVertex) excluded.
+KINETRI_HD inline uint32_t CountPointsWithin(const TriangulationView& v,
+                                             const Vec2& q, double r,
+                                             uint32_t root, uint32_t self) {
+  uint32_t points = 0;
+  RadiusSearch(v, q, r, root, [&](uint32_t s) {
+    for (uint32_t p = s; p != kNoVertex; p = v.dup_next[p]) {
+      if (v.ext_of_int[p] != self) ++points;
+    }
+  });
+  return points;
+}
+
+// One entry of a k-NN answer: internal point id and squared distance.
+struct KnnEntry {
+  uint32_t point;
+  double d2;
+};
+
+// The k first points from q (self excluded) into out[0..k), closest first;
+// returns how many were found (< k only when the set is smaller).
+KINETRI_HD inline uint32_t KNearestSearch(const TriangulationView& v,
+                                          const Vec2& q, uint32_t k,
+                                          uint32_t root, uint32_t self,
+                                          KnnEntry* out) {
+  if (k == 0) return 0;
+  // Starting radius: the farthest neighbour of the nearest site.
+  double r2 = 0.0;
+  for (const uint32_t* it = v.RowBegin(root); it != v.RowEnd(root); ++it) {
+    const double d = SquaredDistance(q, v.pos[*it]);
+    if (d > r2) r2 = d;
+  }
+  double r = sqrt(r2);
+  if (!(r > 0.0)) r = 1.0;  // a single site: any radius holds it
+  // Grow until the disk holds k points or all of them (a disk holding every
+  // site stops growing the count).
+  uint32_t have = CountPointsWithin(v, q, r, root, self);
+  const uint32_t total = v.num_points - (self != kNoVertex ? 1u : 0u);
+  while (have < k && have < total) {
+    r *= 2.0;
+    have = CountPointsWithin(v, q, r, root, self);
+  }
+  // Keep the k first (exact order; coincident points by external id).
+  uint32_t n = 0;
+  RadiusSearch(v, q, r, root, [&](uint32_t s) {
+    const double d2 = SquaredDistance(q, v.pos[s]);
+    for (uint32_t p = s; p != kNoVertex; p = v.dup_next[p]) {
+      const uint32_t ext = v.ext_of_int[p];
+      if (ext == self) continue;
+      // Insertion into the sorted buffer of at most k entries.
+      auto before = [&](const KnnEntry& a) {  // is (p, d2) before a?
+        const int c =
+            CompareCloserCached(q, v.pos[p], d2, v.pos[a.point], a.d2);
+        return c < 0 || (c == 0 && ext < v.ext_of_int[a.point]);
+      };
+      if (n == k && !before(out[k - 1])) continue;
+      uint32_t j = n < k ? n++ : k - 1;
+      while (j > 0 && before(out[j - 1])) {
+        out[j] = out[j - 1];
+        --j;
+      }
+      out[j] = {p, d2};
+    }
+  });
+  return n;
+}
+
+}  // namespace kinetri::core
+
+#endif  // KINETRI_CORE_QUERY_SEARCH_H_
