@@ -504,6 +504,9 @@ bool Triangulation::LocalUpdate(const std::vector<Vec2>& next,
   std::vector<uint32_t> removed;
   std::vector<uint32_t> hints(n, kNoVertex);
   std::vector<uint8_t> level(n, 0);
+  // Vertices whose motion stuck a dense pass: when they resume, they first
+  // take half of their remaining motion (they would stick again otherwise).
+  std::vector<uint8_t> halve_on_resume(n, 0);
   const auto& ve = mesh_.vertex_edge();
   std::vector<Vec2> goal = next;
   std::vector<uint32_t> active = moved_points;  // candidates still to move
@@ -553,18 +556,41 @@ bool Triangulation::LocalUpdate(const std::vector<Vec2>& next,
         ok = true;
         break;
       }
-      for (uint32_t v : held) set_goal(v, next[v]);
+      for (uint32_t v : held) {
+        if (halve_on_resume[v] && level[v] < kMaxHalvings) {
+          halve_on_resume[v] = 0;
+          const Vec2& a = pos_[v];
+          const Vec2& b = next[v];
+          const Vec2 h{a.x + 0.5 * (b.x - a.x), a.y + 0.5 * (b.y - a.y)};
+          if (InExactDomain(h.x) && InExactDomain(h.y) && h != a && h != b) {
+            set_goal(v, h);
+            ++level[v];
+            continue;
+          }
+        }
+        set_goal(v, next[v]);
+      }
       active = std::move(held);
       continue;
     }
-    if (!sparse) {
-      // A dense pass got stuck: hold the stuck vertices and their neighbours
-      // at their old positions so that the next dense pass succeeds; they
-      // then finish their motion in cheap sparse passes.
+    // A pass got stuck: hold the stuck vertices and their neighbours at their
+    // old positions so that the next pass succeeds for everyone else; they
+    // then finish their motion in later (sparse) passes, the stuck ones
+    // taking half of it first. A stuck vertex whose motion was halved too
+    // often is removed and re-inserted instead (below).
+    bool exhausted = false;
+    for (uint32_t v : stuck) {
+      if (v != kNoVertex && ve[v] != kNoEdge && goal[v] != pos_[v] &&
+          level[v] >= kMaxHalvings) {
+        exhausted = true;
+      }
+    }
+    if (!exhausted) {
       const MeshView mv = mesh_.view();
       bool held_any = false;
       for (uint32_t v : stuck) {
         if (v == kNoVertex || ve[v] == kNoEdge) continue;
+        halve_on_resume[v] = 1;
         uint32_t e = ve[v];
         const uint32_t e0 = e;
         std::vector<uint32_t> region = {v};
