@@ -2,9 +2,12 @@
 // step with a parallel counting sort; NN, k-NN and radius by ring search.
 #include "bench/grid_engine.h"
 
+#include <tbb/parallel_sort.h>
+
 #include <algorithm>
 #include <atomic>
 #include <cmath>
+#include <utility>
 
 #include "core/parallel.h"
 
@@ -45,10 +48,26 @@ void GridEngine::Build(const std::vector<core::Vec2>& pts, double cell) {
   std::vector<std::atomic<uint32_t>> fill(cells);
   core::ParallelFor(0, cells, [&](size_t c) { fill[c] = start_[c]; });
   order_.resize(n);
+  sorted_.resize(n);
   core::ParallelFor(0, n, [&](size_t i) {
-    order_[fill[cell_of[i]].fetch_add(1, std::memory_order_relaxed)] =
-        static_cast<uint32_t>(i);
+    const uint32_t slot =
+        fill[cell_of[i]].fetch_add(1, std::memory_order_relaxed);
+    order_[slot] = static_cast<uint32_t>(i);
+    sorted_[slot] = pts[i];
   });
+}
+
+std::vector<uint32_t> GridEngine::CellOrder(
+    const std::vector<core::Vec2>& qs) const {
+  std::vector<std::pair<uint32_t, uint32_t>> key(qs.size());
+  core::ParallelFor(0, qs.size(), [&](size_t i) {
+    key[i] = {static_cast<uint32_t>(CellY(qs[i].y) * nx_ + CellX(qs[i].x)),
+              static_cast<uint32_t>(i)};
+  });
+  tbb::parallel_sort(key.begin(), key.end());
+  std::vector<uint32_t> order(qs.size());
+  for (size_t i = 0; i < qs.size(); ++i) order[i] = key[i].second;
+  return order;
 }
 
 template <typename Visit>
@@ -59,7 +78,7 @@ void GridEngine::Ring(int cx, int cy, int ring, Visit&& visit) const {
     for (int x = cx - ring; x <= cx + ring; x += edge_row ? 1 : 2 * ring) {
       if (x >= 0 && x < nx_) {
         const size_t c = size_t(y) * nx_ + x;
-        for (uint32_t k = start_[c]; k < start_[c + 1]; ++k) visit(order_[k]);
+        for (uint32_t k = start_[c]; k < start_[c + 1]; ++k) visit(k);
       }
       if (ring == 0) break;
     }
@@ -68,7 +87,6 @@ void GridEngine::Ring(int cx, int cy, int ring, Visit&& visit) const {
 
 void GridEngine::KNearestOne(const core::Vec2& q, uint32_t skip, int k,
                              uint32_t* out) const {
-  const auto& pts = *pts_;
   const int cx = CellX(q.x), cy = CellY(q.y);
   // Max-heap of (d2, id) holding the k best so far, in a small array.
   thread_local std::vector<std::pair<double, uint32_t>> best;
@@ -79,9 +97,10 @@ void GridEngine::KNearestOne(const core::Vec2& q, uint32_t skip, int k,
       const double reach = ring > 0 ? (ring - 1) * cell_ : 0.0;
       if (best.front().first <= reach * reach) break;
     }
-    Ring(cx, cy, ring, [&](uint32_t j) {
+    Ring(cx, cy, ring, [&](uint32_t slot) {
+      const uint32_t j = order_[slot];
       if (j == skip) return;
-      const double dx = pts[j].x - q.x, dy = pts[j].y - q.y;
+      const double dx = sorted_[slot].x - q.x, dy = sorted_[slot].y - q.y;
       const std::pair<double, uint32_t> e(dx * dx + dy * dy, j);
       if (static_cast<int>(best.size()) < k) {
         best.push_back(e);
@@ -101,13 +120,13 @@ void GridEngine::KNearestOne(const core::Vec2& q, uint32_t skip, int k,
 
 void GridEngine::RadiusOne(const core::Vec2& q, uint32_t skip, double r,
                            std::vector<uint32_t>& row) const {
-  const auto& pts = *pts_;
   const int reach = static_cast<int>(std::ceil(r / cell_));
   const int cx = CellX(q.x), cy = CellY(q.y);
   for (int ring = 0; ring <= reach; ++ring) {
-    Ring(cx, cy, ring, [&](uint32_t j) {
+    Ring(cx, cy, ring, [&](uint32_t slot) {
+      const uint32_t j = order_[slot];
       if (j == skip) return;
-      const double dx = pts[j].x - q.x, dy = pts[j].y - q.y;
+      const double dx = sorted_[slot].x - q.x, dy = sorted_[slot].y - q.y;
       if (dx * dx + dy * dy <= r * r) row.push_back(j);
     });
   }
@@ -118,8 +137,9 @@ std::vector<uint32_t> GridEngine::AllKNearest(int k) const {
   std::vector<uint32_t> out(n * k, UINT32_MAX);
   core::ParallelFor(
       0, n,
-      [&](size_t i) {
-        KNearestOne((*pts_)[i], static_cast<uint32_t>(i), k, &out[i * k]);
+      [&](size_t slot) {
+        const uint32_t i = order_[slot];
+        KNearestOne(sorted_[slot], i, k, &out[size_t{i} * k]);
       },
       256);
   return out;
@@ -130,28 +150,37 @@ std::vector<uint32_t> GridEngine::AllNearest() const { return AllKNearest(1); }
 std::vector<uint32_t> GridEngine::NearestOf(
     const std::vector<core::Vec2>& qs) const {
   std::vector<uint32_t> out(qs.size(), UINT32_MAX);
+  const std::vector<uint32_t> order = CellOrder(qs);
   core::ParallelFor(
-      0, qs.size(), [&](size_t i) { KNearestOne(qs[i], UINT32_MAX, 1, &out[i]); },
+      0, qs.size(),
+      [&](size_t s) {
+        const uint32_t i = order[s];
+        KNearestOne(qs[i], UINT32_MAX, 1, &out[i]);
+      },
       256);
   return out;
 }
 
-// Rows built per block of queries into block buffers, then one CSR.
+// Rows built in `order` per block of queries into block buffers, then one
+// CSR in query order.
 template <typename RowFn>
-void GridEngine::Rows(size_t nq, RowFn&& row_fn,
+void GridEngine::Rows(const std::vector<uint32_t>& order, RowFn&& row_fn,
                       std::vector<uint64_t>* offsets,
                       std::vector<uint32_t>* ids) const {
   constexpr size_t kBlock = 256;
+  const size_t nq = order.size();
   const size_t blocks = (nq + kBlock - 1) / kBlock;
   std::vector<std::vector<uint32_t>> hits(blocks);
+  std::vector<uint32_t> start_in_block(nq);
   offsets->assign(nq + 1, 0);
   core::ParallelFor(
       0, blocks,
       [&](size_t b) {
-        for (size_t i = b * kBlock; i < std::min(nq, (b + 1) * kBlock); ++i) {
+        for (size_t s = b * kBlock; s < std::min(nq, (b + 1) * kBlock); ++s) {
           const size_t before = hits[b].size();
-          row_fn(i, hits[b]);
-          (*offsets)[i + 1] = hits[b].size() - before;
+          start_in_block[s] = static_cast<uint32_t>(before);
+          row_fn(s, order[s], hits[b]);
+          (*offsets)[order[s] + 1] = hits[b].size() - before;
         }
       },
       1);
@@ -160,18 +189,23 @@ void GridEngine::Rows(size_t nq, RowFn&& row_fn,
   core::ParallelFor(
       0, blocks,
       [&](size_t b) {
-        std::copy(hits[b].begin(), hits[b].end(),
-                  ids->begin() + (*offsets)[b * kBlock]);
+        for (size_t s = b * kBlock; s < std::min(nq, (b + 1) * kBlock); ++s) {
+          const uint32_t q = order[s];
+          const auto first = hits[b].begin() + start_in_block[s];
+          std::copy(first, first + ((*offsets)[q + 1] - (*offsets)[q]),
+                    ids->begin() + (*offsets)[q]);
+        }
       },
       1);
 }
 
 void GridEngine::AllWithinRadius(double r, std::vector<uint64_t>* offsets,
                                  std::vector<uint32_t>* ids) const {
+  // Points in cell order: slot s is point order_[s] at sorted_[s].
   Rows(
-      pts_->size(),
-      [&](size_t i, std::vector<uint32_t>& row) {
-        RadiusOne((*pts_)[i], static_cast<uint32_t>(i), r, row);
+      order_,
+      [&](size_t s, uint32_t i, std::vector<uint32_t>& row) {
+        RadiusOne(sorted_[s], i, r, row);
       },
       offsets, ids);
 }
@@ -180,8 +214,8 @@ void GridEngine::WithinRadiusOf(const std::vector<core::Vec2>& qs, double r,
                                 std::vector<uint64_t>* offsets,
                                 std::vector<uint32_t>* ids) const {
   Rows(
-      qs.size(),
-      [&](size_t i, std::vector<uint32_t>& row) {
+      CellOrder(qs),
+      [&](size_t, uint32_t i, std::vector<uint32_t>& row) {
         RadiusOne(qs[i], UINT32_MAX, r, row);
       },
       offsets, ids);

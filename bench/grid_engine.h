@@ -1,5 +1,8 @@
 // Peer engine for the benchmarks: a uniform grid (cell list) rebuilt every
 // step with a parallel counting sort; NN, k-NN and radius by ring search.
+// Tuned as such grids are in practice: the sort also copies the positions
+// into cell order (each cell's points are contiguous), and queries run in
+// cell order, so neighbouring queries scan the same cells from cache.
 #ifndef KINETRI_BENCH_GRID_ENGINE_H_
 #define KINETRI_BENCH_GRID_ENGINE_H_
 
@@ -36,9 +39,13 @@ class GridEngine {
   // Points within r of q other than `skip`, appended to row.
   void RadiusOne(const core::Vec2& q, uint32_t skip, double r,
                  std::vector<uint32_t>& row) const;
+  // Rows of queries 0..nq, computed in the order `order` (a permutation)
+  // and returned as CSR in query order.
   template <typename RowFn>
-  void Rows(size_t nq, RowFn&& row_fn, std::vector<uint64_t>* offsets,
-            std::vector<uint32_t>* ids) const;
+  void Rows(const std::vector<uint32_t>& order, RowFn&& row_fn,
+            std::vector<uint64_t>* offsets, std::vector<uint32_t>* ids) const;
+  // Indices of qs sorted by grid cell.
+  std::vector<uint32_t> CellOrder(const std::vector<core::Vec2>& qs) const;
   template <typename Visit>
   void Ring(int cx, int cy, int ring, Visit&& visit) const;
   int CellX(double x) const;
@@ -47,8 +54,9 @@ class GridEngine {
   const std::vector<core::Vec2>* pts_ = nullptr;
   double cell_ = 1.0, x0_ = 0.0, y0_ = 0.0;
   int nx_ = 1, ny_ = 1;
-  std::vector<uint32_t> start_;  // CSR over cells
-  std::vector<uint32_t> order_;  // point ids sorted by cell
+  std::vector<uint32_t> start_;     // CSR over cells
+  std::vector<uint32_t> order_;     // point ids sorted by cell
+  std::vector<core::Vec2> sorted_;  // their positions, in the same order
 };
 
 }  // namespace kinetri::bench

@@ -407,17 +407,24 @@ int main(int argc, char** argv) {
           t0 = Clock::now();
           auto knn = kc::KNearestOfPoints(*t, all, 8, true);
           rec(e, "knn8", Ms(t0));
+          // Radius rows in the peers' output form: the set of neighbour
+          // ids, unordered, no distances.
+          kc::RowOptions set_only;
+          set_only.closest_first = false;
+          set_only.distances = false;
           t0 = Clock::now();
-          auto q8 = kc::WithinRadiusOfPoints(*t, all, r8, true, 0);
+          auto q8 =
+              kc::WithinRadiusOfPoints(*t, all, r8, true, 0, {}, set_only);
           rec(e, "radius8", Ms(t0));
           t0 = Clock::now();
-          auto q32 = kc::WithinRadiusOfPoints(*t, all, r32, true, 0);
+          auto q32 =
+              kc::WithinRadiusOfPoints(*t, all, r32, true, 0, {}, set_only);
           rec(e, "radius32", Ms(t0));
           t0 = Clock::now();
           auto pnn = kc::Nearest(*t, qs);
           rec(e, "points_nn", Ms(t0));
           t0 = Clock::now();
-          auto pr8 = kc::WithinRadius(*t, qs, r8, 0);
+          auto pr8 = kc::WithinRadius(*t, qs, r8, 0, {}, set_only);
           rec(e, "points_radius8", Ms(t0));
           if (!knn.ok() || !q8.ok() || !q32.ok() || !pnn.ok() || !pr8.ok()) {
             failed[e] = true;

@@ -70,9 +70,9 @@ std::vector<T>& Scratch() {
 
 // Appends the points of `site` (ascending external id) except `skip`.
 void EmitSite(const TriangulationView& v, uint32_t site, const Vec2& q,
-              uint32_t skip, std::vector<Hit>& out) {
+              uint32_t skip, std::vector<Hit>& out, bool distance = true) {
   const size_t begin = out.size();
-  const double d = Distance(q, v.pos[site]);
+  const double d = distance ? Distance(q, v.pos[site]) : 0.0;
   for (uint32_t p = site; p != kNoVertex; p = v.dup_next[p]) {
     const uint32_t ext = v.ext_of_int[p];
     if (ext != skip) out.push_back({ext, d});
@@ -159,7 +159,8 @@ std::vector<uint32_t> OrderByKey(const std::vector<uint32_t>& keys,
 template <typename RowFn>
 absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
                                       const std::vector<Query>& queries,
-                                      QueryLimits limits, RowFn&& row_fn) {
+                                      QueryLimits limits, bool distances,
+                                      RowFn&& row_fn) {
   const size_t nq = queries.size();
   // Rows are produced in fixed blocks of queries, each block appending to
   // its own buffer (no allocation per row), then copied into the CSR.
@@ -220,14 +221,14 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
         limits.max_total_results));
   }
   out.ids.resize(out.offsets[nq]);
-  out.distances.resize(out.offsets[nq]);
+  if (distances) out.distances.resize(out.offsets[nq]);
   ParallelFor(0, nq, [&](size_t i) {
     const Hit* h = block_hits.empty()
                        ? nullptr
                        : block_hits[row_block[i]].data() + row_start[i];
     for (uint64_t k = out.offsets[i]; k < out.offsets[i + 1]; ++k, ++h) {
       out.ids[k] = h->ext;
-      out.distances[k] = h->dist;
+      if (distances) out.distances[k] = h->dist;
     }
   });
   out.truncated = std::move(truncated);
@@ -240,7 +241,7 @@ absl::StatusOr<NeighborLists> KNearestImpl(const Triangulation& t,
   if (absl::Status s = CheckQueryK(k); !s.ok()) return s;
   const size_t want = static_cast<size_t>(k);
   return RunRows(
-      t, queries, limits,
+      t, queries, limits, /*distances=*/true,
       [want](const TriangulationView& v, const Query& q, uint32_t root,
              std::vector<Hit>& out) {
         // Min-heap on the exact order (squared distances in double
@@ -276,12 +277,13 @@ absl::StatusOr<NeighborLists> KNearestImpl(const Triangulation& t,
 absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
                                          const std::vector<Query>& queries,
                                          double r, uint32_t max_results,
-                                         QueryLimits limits) {
+                                         QueryLimits limits,
+                                         RowOptions options) {
   if (absl::Status s = CheckRadius(r); !s.ok()) return s;
   return RunRows(
-      t, queries, limits,
-      [r, max_results](const TriangulationView& v, const Query& q,
-                       uint32_t root, std::vector<Hit>& out) {
+      t, queries, limits, options.distances,
+      [r, max_results, options](const TriangulationView& v, const Query& q,
+                                uint32_t root, std::vector<Hit>& out) {
         if (CompareDistanceToRadius(q.q, v.pos[root], r) > 0) return false;
         // Breadth-first over Delaunay neighbours inside the disk,
         // from the first site. Visited marks are per-thread epoch
@@ -309,6 +311,13 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
             found.push_back({dw, w});
           }
         }
+        if (!options.closest_first) {
+          for (const auto& f : found) {
+            EmitSite(v, f.second, q.q, q.self_ext, out, options.distances);
+          }
+          if (max_results == 0 || out.size() <= max_results) return false;
+          out.clear();  // a cut row keeps the closest points: sort after all
+        }
         // Closest first: sort on the double squared distances,
         // then an insertion pass with the exact order (linear
         // unless rounding misordered near-ties).
@@ -324,7 +333,9 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
           }
           found[j] = x;
         }
-        for (const auto& f : found) EmitSite(v, f.second, q.q, q.self_ext, out);
+        for (const auto& f : found) {
+          EmitSite(v, f.second, q.q, q.self_ext, out, options.distances);
+        }
         if (max_results && out.size() > max_results) {
           out.resize(max_results);
           return true;
@@ -394,10 +405,11 @@ absl::StatusOr<NeighborLists> Nearest(const Triangulation& t,
 absl::StatusOr<NeighborLists> WithinRadius(const Triangulation& t,
                                            absl::Span<const Vec2> queries,
                                            double r, uint32_t max_results,
-                                           QueryLimits limits) {
+                                           QueryLimits limits,
+                                           RowOptions options) {
   auto qs = PositionQueries(queries);
   if (!qs.ok()) return qs.status();
-  return RadiusImpl(t, *qs, r, max_results, limits);
+  return RadiusImpl(t, *qs, r, max_results, limits, options);
 }
 
 absl::Status CheckQueryPositions(absl::Span<const Vec2> queries) {
@@ -423,10 +435,11 @@ absl::Status CheckQueryK(int k) {
 
 absl::StatusOr<NeighborLists> WithinRadiusOfPoints(
     const Triangulation& t, absl::Span<const uint32_t> ids, double r,
-    bool exclude_self, uint32_t max_results, QueryLimits limits) {
+    bool exclude_self, uint32_t max_results, QueryLimits limits,
+    RowOptions options) {
   auto qs = PointQueries(t, ids, exclude_self);
   if (!qs.ok()) return qs.status();
-  return RadiusImpl(t, *qs, r, max_results, limits);
+  return RadiusImpl(t, *qs, r, max_results, limits, options);
 }
 
 }  // namespace kinetri::core

@@ -55,6 +55,15 @@ struct NeighborLists {
   size_t row_size(size_t i) const { return offsets[i + 1] - offsets[i]; }
 };
 
+// What radius rows carry. The closest-first order costs a sort per row and
+// the distances a square root per result; callers that need only the set of
+// neighbours ("who is within r of whom") can drop either. Rows cut by
+// max_results are always the closest points, whatever the order asked for.
+struct RowOptions {
+  bool closest_first = true;  // false: rows in traversal order
+  bool distances = true;      // false: NeighborLists::distances stays empty
+};
+
 struct QueryLimits {
   // Total result rows above this fail with RESOURCE_EXHAUSTED (0 = no limit).
   uint64_t max_total_results = 0;
@@ -76,16 +85,19 @@ absl::StatusOr<NeighborLists> KNearestOfPoints(const Triangulation& t,
                                                int k, bool exclude_self,
                                                QueryLimits limits = {});
 
-// All points within distance r (inclusive) of each position, closest first,
-// at most max_results per row (0 = unlimited; a cut row is flagged).
+// All points within distance r (inclusive) of each position, closest first
+// (unless options say otherwise), at most max_results per row (0 =
+// unlimited; a cut row is flagged).
 absl::StatusOr<NeighborLists> WithinRadius(const Triangulation& t,
                                            absl::Span<const Vec2> queries,
                                            double r, uint32_t max_results,
-                                           QueryLimits limits = {});
+                                           QueryLimits limits = {},
+                                           RowOptions options = {});
 
 absl::StatusOr<NeighborLists> WithinRadiusOfPoints(
     const Triangulation& t, absl::Span<const uint32_t> ids, double r,
-    bool exclude_self, uint32_t max_results, QueryLimits limits = {});
+    bool exclude_self, uint32_t max_results, QueryLimits limits = {},
+    RowOptions options = {});
 
 // The nearest point of each position (k = 1).
 absl::StatusOr<NeighborLists> Nearest(const Triangulation& t,

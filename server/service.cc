@@ -384,11 +384,14 @@ grpc::Status KinetriServiceImpl::Query(
     const bool by_id = !req->has_positions();
     const int k = req->kind() == v1::QUERY_KIND_K_NEAREST ? req->k() : 1;
     if (req->kind() == v1::QUERY_KIND_RADIUS) {
-      result = by_id ? core::WithinRadiusOfPoints(
-                           t, ids, req->radius(), req->exclude_self(),
-                           req->max_results_per_row(), limits)
-                     : core::WithinRadius(t, positions, req->radius(),
-                                          req->max_results_per_row(), limits);
+      core::RowOptions rows;
+      rows.distances = req->include_distances();
+      result =
+          by_id ? core::WithinRadiusOfPoints(
+                      t, ids, req->radius(), req->exclude_self(),
+                      req->max_results_per_row(), limits, rows)
+                : core::WithinRadius(t, positions, req->radius(),
+                                     req->max_results_per_row(), limits, rows);
     } else if (by_id && req->has_all_points() && k == 1 &&
                req->exclude_self()) {
       result = core::AllNearestNeighbors(t);
