@@ -40,27 +40,35 @@ def goals(table, n):
 
     b = ("brownian", 0.1)
     c = ("clustered", 0.1)
+    uniform = [("brownian", 0.01), b, ("brownian", 1.0), ("paper", 0.0005)]
+
+    def step(load, engine):
+        return add(med(table, *load, "update", engine),
+                   med(table, *load, "all_nn", engine))
+
     rows = [
         ("1. update, brownian 0.1: Kinetri / CGAL rebuild", "<= 0.05",
          ratio(med(table, *b, "update", "kinetri"),
                med(table, *b, "update", "cgal-rebuild"))),
-        ("2. update + all-NN, brownian 0.1: Kinetri / grid", "<= 1",
-         ratio(add(med(table, *b, "update", "kinetri"),
-                   med(table, *b, "all_nn", "kinetri")),
-               add(med(table, *b, "update", "grid"),
-                   med(table, *b, "all_nn", "grid")))),
-        ("3a. radius (32), clustered: Kinetri / grid", "< 1",
-         ratio(med(table, *c, "radius32", "kinetri"),
-               med(table, *c, "radius32", "grid"))),
-        ("3b. radius (32), brownian 0.1: Kinetri / grid", "<= 1.5",
-         ratio(med(table, *b, "radius32", "kinetri"),
-               med(table, *b, "radius32", "grid"))),
-        ("4. all-points 8-NN, brownian 0.1: Kinetri / nanoflann build+query",
-         "<= 0.333",
-         ratio(med(table, *b, "knn8", "kinetri"),
-               add(med(table, *b, "update", "nanoflann"),
-                   med(table, *b, "knn8", "nanoflann")))),
     ]
+    for load in uniform:
+        rows.append((f"2. update + all-NN, {load[0]} {load[1]:g}: "
+                     "Kinetri / grid (rebuild + all-NN)", "<= 1",
+                     ratio(step(load, "kinetri"), step(load, "grid"))))
+    rows.append(("3a. radius (32), clustered: Kinetri / grid", "< 1",
+                 ratio(med(table, *c, "radius32", "kinetri"),
+                       med(table, *c, "radius32", "grid"))))
+    for load in (b, ("paper", 0.0005)):
+        rows.append((f"3b. radius (32), {load[0]} {load[1]:g}: "
+                     "Kinetri / grid", "<= 1.5",
+                     ratio(med(table, *load, "radius32", "kinetri"),
+                           med(table, *load, "radius32", "grid"))))
+    for load in (b, c):
+        rows.append((f"4. all-points 8-NN, {load[0]} {load[1]:g}: "
+                     "Kinetri / nanoflann build+query", "<= 0.333",
+                     ratio(med(table, *load, "knn8", "kinetri"),
+                           add(med(table, *load, "update", "nanoflann"),
+                               med(table, *load, "knn8", "nanoflann")))))
     print(f"\nGoals at n = {n} (ratios of medians from this run):\n")
     print("| goal | target | measured |")
     print("|---|---:|---:|")
@@ -76,7 +84,7 @@ def main(argv):
     sizes = sorted({r["n"] for r in recs})
     n = int(rest[0]) if rest else max(sizes)
     m = doc["machine"]
-    print(f"Machine: {m['cpu']}, {m['cores']} cores, GPU {m['gpu']}, "
+    print(f"Machine: {m['cpu']}, {m['cores']} cores, GPU {m['gpu'] or 'none'}, "
           f"commit {m['commit']}; median (p90) ms per step; steps measured "
           f"in the last column.\n")
     by_load = defaultdict(list)
