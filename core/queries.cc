@@ -198,7 +198,11 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
                  ++j) {
               const size_t i = order[j];
               const Query& q = queries[i];
-              const uint32_t root = WalkToNearestSite(v, q.q, start[i]);
+              // A query at a site's own position (queries of points)
+              // starts there: distance 0 comes first, no walk needed.
+              const uint32_t root = v.pos[start[i]] == q.q
+                                        ? start[i]
+                                        : WalkToNearestSite(v, q.q, start[i]);
               row.clear();
               truncated[i] = row_fn(v, q, root, row) ? 1 : 0;
               row_size[i] = row.size();
@@ -244,29 +248,44 @@ absl::StatusOr<NeighborLists> KNearestImpl(const Triangulation& t,
       t, queries, limits, /*distances=*/true,
       [want](const TriangulationView& v, const Query& q, uint32_t root,
              std::vector<Hit>& out) {
-        // Min-heap on the exact order (squared distances in double
-        // decide clear cases); visited sites marked with per-thread
-        // epoch stamps.
+        // Best-first expansion over a bounded candidate list kept in the
+        // exact order (squared distances in double decide clear cases).
+        // A candidate ranked beyond what can still be taken is dropped:
+        // every pop emits at least one point (only the query's own site,
+        // popped first, may emit none), so with `need` points still
+        // wanted at most need + 1 more sites are popped, and anything
+        // behind need + 1 better candidates is never reached. Visited
+        // sites are marked with per-thread epoch stamps.
         using Entry = std::pair<double, uint32_t>;
-        auto later = [&](const Entry& a, const Entry& b) {
+        auto before = [&](const Entry& a, const Entry& b) {
           return CompareCloserCached(q.q, v.pos[a.second], a.first,
-                                     v.pos[b.second], b.first) > 0;
+                                     v.pos[b.second], b.first) < 0;
         };
-        std::vector<Entry>& heap = Scratch<Entry>();
+        std::vector<Entry>& cand = Scratch<Entry>();
         const VisitMarks::Search marks = VisitMarks::Begin(v.num_points);
-        heap.clear();
-        heap.push_back({SquaredDistance(q.q, v.pos[root]), root});
+        cand.clear();
+        cand.push_back({SquaredDistance(q.q, v.pos[root]), root});
         marks.Visit(root);
-        while (!heap.empty() && out.size() < want) {
-          std::pop_heap(heap.begin(), heap.end(), later);
-          const uint32_t s = heap.back().second;
-          heap.pop_back();
+        size_t head = 0;  // cand[head..] sorted, closest first
+        while (head < cand.size() && out.size() < want) {
+          const uint32_t s = cand[head++].second;
           EmitSite(v, s, q.q, q.self_ext, out);
+          if (out.size() >= want) break;
+          const size_t cap = want - out.size() + 1;
           for (const uint32_t* it = v.RowBegin(s); it != v.RowEnd(s); ++it) {
             const uint32_t w = *it;
             if (!marks.Visit(w)) continue;
-            heap.push_back({SquaredDistance(q.q, v.pos[w]), w});
-            std::push_heap(heap.begin(), heap.end(), later);
+            const Entry e{SquaredDistance(q.q, v.pos[w]), w};
+            const size_t live = cand.size() - head;
+            if (live >= cap && !before(e, cand.back())) continue;
+            size_t j = cand.size();
+            cand.push_back(e);
+            while (j > head && before(e, cand[j - 1])) {
+              cand[j] = cand[j - 1];
+              --j;
+            }
+            cand[j] = e;
+            if (cand.size() - head > cap) cand.pop_back();
           }
         }
         if (out.size() > want) out.resize(want);
