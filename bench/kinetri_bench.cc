@@ -98,8 +98,9 @@ Workload MakeWorkload(const std::string& name, double param, size_t n,
     return w;
   }
   if (name == "clustered") {
-    // 90% of the points in 20 tight Gaussian clusters, 10% uniform: about
-    // 1000x density contrast.
+    // 90% of the points in 18 tight Gaussian clusters (points i with
+    // i % 10 != 0 go to centre i % 20, so centres 0 and 10 stay unused),
+    // 10% uniform: about 5000x density contrast at the cluster cores.
     std::vector<Vec2> centers(20);
     for (auto& c : centers) c = {0.1 + 0.8 * u(rng), 0.1 + 0.8 * u(rng)};
     std::normal_distribution<double> g(0, 0.004);
@@ -206,7 +207,23 @@ std::vector<std::pair<uint32_t, uint32_t>> CgalEdges(const CgalDt& dt) {
   return e;
 }
 
-std::string MachineJson() {
+// The commit checked out in the source tree the binary was built from, read
+// when the run starts ("-dirty" when it had uncommitted changes).
+std::string SourceCommit() {
+  std::string commit = "unknown";
+  const std::string git =
+      absl::StrCat("git -C '", KINETRI_SOURCE_DIR,
+                   "' describe --always --dirty --abbrev=7 2>/dev/null");
+  if (FILE* f = popen(git.c_str(), "r")) {
+    char buf[64] = {0};
+    if (fgets(buf, sizeof buf, f))
+      commit = std::string(buf, strcspn(buf, "\n"));
+    pclose(f);
+  }
+  return commit;
+}
+
+std::string MachineJson(const std::string& commit) {
   std::ifstream cpu("/proc/cpuinfo");
   std::string line, model = "unknown";
   while (std::getline(cpu, line)) {
@@ -214,16 +231,6 @@ std::string MachineJson() {
       model = line.substr(line.find(':') + 2);
       break;
     }
-  }
-  std::string commit = "unknown";
-  // The commit of the source tree this binary was built from.
-  const std::string git = absl::StrCat("git -C '", KINETRI_SOURCE_DIR,
-                                       "' rev-parse --short HEAD 2>/dev/null");
-  if (FILE* f = popen(git.c_str(), "r")) {
-    char buf[64] = {0};
-    if (fgets(buf, sizeof buf, f))
-      commit = std::string(buf, strcspn(buf, "\n"));
-    pclose(f);
   }
   return absl::StrCat("{\"cpu\":\"", model,
                       "\",\"cores\":", std::thread::hardware_concurrency(),
@@ -242,6 +249,7 @@ int main(int argc, char** argv) {
       "Workloads: paper (the note's DLA set-up), brownian 0.01/0.1/1 "
       "spacings, shear, vortex, clustered.");
   absl::ParseCommandLine(argc, argv);
+  const std::string commit = SourceCommit();
   const bool quick = absl::GetFlag(FLAGS_quick);
   std::vector<size_t> sizes = quick
                                   ? std::vector<size_t>{10000, 100000}
@@ -395,7 +403,11 @@ int main(int argc, char** argv) {
           auto nn = kc::AllNearestNeighbors(*t);
           rec(e, "all_nn", Ms(t0));
           if (!rep.ok() || !nn.ok()) {
-            failed[e] = true;
+            std::fprintf(
+                stderr, "%s %g n=%zu: %s failed: %s\n", wname.c_str(), param, n,
+                e.c_str(),
+                (!rep.ok() ? rep.status() : nn.status()).ToString().c_str());
+            failed[e] = any_failed = true;
             continue;
           }
           Answers& a = ans[e];
@@ -427,7 +439,9 @@ int main(int argc, char** argv) {
           auto pr8 = kc::WithinRadius(*t, qs, r8, 0, {}, set_only);
           rec(e, "points_radius8", Ms(t0));
           if (!knn.ok() || !q8.ok() || !q32.ok() || !pnn.ok() || !pr8.ok()) {
-            failed[e] = true;
+            std::fprintf(stderr, "%s %g n=%zu: %s: a query failed\n",
+                         wname.c_str(), param, n, e.c_str());
+            failed[e] = any_failed = true;
             continue;
           }
           if (check) {
@@ -654,7 +668,7 @@ int main(int argc, char** argv) {
   }
   if (!absl::GetFlag(FLAGS_json).empty()) {
     std::ofstream out(absl::GetFlag(FLAGS_json));
-    out << "{\"machine\":" << MachineJson() << ",\"records\":[\n";
+    out << "{\"machine\":" << MachineJson(commit) << ",\"records\":[\n";
     for (size_t i = 0; i < records.size(); ++i) {
       const Record& r = records[i];
       out << absl::StrCat("{\"workload\":\"", r.workload,

@@ -13,8 +13,9 @@
 //    is strictly closer (also under the nudged order), so the walk ends at it;
 //  * k nearest: best-first expansion from the nearest site: the (i+1)-th
 //    closest site is adjacent to one of the first i (each site has a strictly
-//    closer neighbour unless it is the first), so popping sites from a heap
-//    yields them in order;
+//    closer neighbour unless it is the first), so taking sites closest
+//    first from the frontier yields them in order; the frontier is a short
+//    sorted list that drops candidates which can no longer be taken;
 //  * fixed radius (FRNN): breadth-first search from the nearest site over
 //    Delaunay neighbours that lie in the disk. It finds every site in the
 //    disk because those sites are connected through the disk: a site v in
