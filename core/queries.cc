@@ -169,8 +169,9 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
   std::vector<std::vector<Hit>> block_hits(blocks);
   std::vector<uint64_t> row_size(nq, 0);
   std::vector<uint8_t> truncated(nq, 0);
-  // Where each row lives: its block's buffer and its first hit there.
-  std::vector<uint32_t> row_block(nq, 0);
+  // Slot of each request in processing order, and where the row of each
+  // slot starts in its block's buffer (block = slot / kBlock).
+  std::vector<uint32_t> slot_of(nq, 0);
   std::vector<uint64_t> row_start(nq, 0);
   if (t.num_sites() > 0) {
     const TriangulationView v = t.query_view();
@@ -187,8 +188,20 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
       });
       // Queries run in the order of their start sites (internal ids follow
       // a Hilbert curve), so that neighbouring queries touch the same
-      // memory; rows still come out in request order.
+      // memory; rows still come out in request order. The queries and
+      // their per-row bookkeeping are gathered into that order first, so
+      // the searches read and write them sequentially (a gather in a tight
+      // loop overlaps its cache misses; inside the search loop each one
+      // would stall the search).
       const std::vector<uint32_t> order = OrderByKey(start, v.num_points);
+      std::vector<Query> sorted(nq);
+      std::vector<uint32_t> sorted_start(nq);
+      ParallelFor(0, nq, [&](size_t j) {
+        sorted[j] = queries[order[j]];
+        sorted_start[j] = start[order[j]];
+      });
+      std::vector<uint64_t> sorted_size(nq, 0);
+      std::vector<uint8_t> sorted_truncated(nq, 0);
       ParallelFor(
           0, blocks,
           [&](size_t b) {
@@ -196,22 +209,26 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
             std::vector<Hit>& row = Scratch<Hit>();
             for (size_t j = b * kBlock; j < std::min(nq, (b + 1) * kBlock);
                  ++j) {
-              const size_t i = order[j];
-              const Query& q = queries[i];
+              const Query& q = sorted[j];
+              const uint32_t s = sorted_start[j];
               // A query at a site's own position (queries of points)
               // starts there: distance 0 comes first, no walk needed.
-              const uint32_t root = v.pos[start[i]] == q.q
-                                        ? start[i]
-                                        : WalkToNearestSite(v, q.q, start[i]);
+              const uint32_t root =
+                  v.pos[s] == q.q ? s : WalkToNearestSite(v, q.q, s);
               row.clear();
-              truncated[i] = row_fn(v, q, root, row) ? 1 : 0;
-              row_size[i] = row.size();
-              row_block[i] = static_cast<uint32_t>(b);
-              row_start[i] = hits.size();
+              sorted_truncated[j] = row_fn(v, q, root, row) ? 1 : 0;
+              sorted_size[j] = row.size();
+              row_start[j] = hits.size();
               hits.insert(hits.end(), row.begin(), row.end());
             }
           },
           1);
+      ParallelFor(0, nq, [&](size_t j) {
+        const uint32_t i = order[j];
+        slot_of[i] = static_cast<uint32_t>(j);
+        row_size[i] = sorted_size[j];
+        truncated[i] = sorted_truncated[j];
+      });
     });
   }
   NeighborLists out;
@@ -227,9 +244,10 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
   out.ids.resize(out.offsets[nq]);
   if (distances) out.distances.resize(out.offsets[nq]);
   ParallelFor(0, nq, [&](size_t i) {
+    const uint32_t j = slot_of[i];
     const Hit* h = block_hits.empty()
                        ? nullptr
-                       : block_hits[row_block[i]].data() + row_start[i];
+                       : block_hits[j / kBlock].data() + row_start[j];
     for (uint64_t k = out.offsets[i]; k < out.offsets[i + 1]; ++k, ++h) {
       out.ids[k] = h->ext;
       if (distances) out.distances[k] = h->dist;
