@@ -115,16 +115,21 @@ __global__ void KnnCompact(TriangulationView v, uint32_t nq, uint32_t k,
 
 absl::Status Launched() { return Check(cudaGetLastError(), "launch"); }
 
-// counts[0..nq) -> offsets[0..nq] (exclusive scan on the device).
+// counts[0..nq) -> offsets[0..nq] (exclusive scan on the device); *total
+// is offsets[nq], the only value read back.
 absl::Status Scan(Buffer<uint64_t>& counts, uint32_t nq,
-                  Buffer<uint64_t>* offsets) {
+                  Buffer<uint64_t>* offsets, uint64_t* total) {
   absl::Status s = offsets->Allocate(size_t{nq} + 1);
   if (!s.ok()) return s;
   s = Check(cudaMemset(counts.ptr + nq, 0, sizeof(uint64_t)), "memset");
   if (!s.ok()) return s;
   thrust::exclusive_scan(thrust::device, counts.ptr, counts.ptr + nq + 1,
                          offsets->ptr);
-  return Check(cudaGetLastError(), "scan");
+  s = Check(cudaGetLastError(), "scan");
+  if (!s.ok()) return s;
+  return Check(cudaMemcpy(total, offsets->ptr + nq, sizeof *total,
+                          cudaMemcpyDeviceToHost),
+               "download");
 }
 
 // Downloads CSR rows; cuts rows to max_results (0: no cut) on the host.
@@ -225,13 +230,8 @@ absl::StatusOr<NeighborLists> Radius(const TriangulationView& v,
   if (!s.ok()) return s;
   RadiusCount<<<Blocks(nq), kBlock>>>(v, qs.ptr, nq, r, counts.ptr);
   s = Launched();
-  if (s.ok()) s = Scan(counts, nq, &offsets);
   uint64_t total = 0;
-  if (s.ok()) {
-    s = Check(cudaMemcpy(&total, offsets.ptr + nq, sizeof total,
-                         cudaMemcpyDeviceToHost),
-              "download");
-  }
+  if (s.ok()) s = Scan(counts, nq, &offsets, &total);
   if (!s.ok()) return s;
   // The limit applies to the rows returned (after any per-row cut), as on
   // the CPU; the full rows are checked first only when no cut applies.
@@ -292,13 +292,8 @@ absl::StatusOr<NeighborLists> Knn(const TriangulationView& v,
   if (!s.ok()) return s;
   KnnKernel<<<Blocks(nq), kBlock>>>(v, qs.ptr, nq, kk, buf.ptr, counts.ptr);
   s = Launched();
-  if (s.ok()) s = Scan(counts, nq, &offsets);
   uint64_t total = 0;
-  if (s.ok()) {
-    s = Check(cudaMemcpy(&total, offsets.ptr + nq, sizeof total,
-                         cudaMemcpyDeviceToHost),
-              "download");
-  }
+  if (s.ok()) s = Scan(counts, nq, &offsets, &total);
   if (!s.ok()) return s;
   if (limits.max_total_results && total > limits.max_total_results) {
     return absl::ResourceExhaustedError(
