@@ -12,6 +12,7 @@
 #include <cmath>
 #include <mutex>
 #include <numeric>
+#include <optional>
 
 #include "absl/strings/str_cat.h"
 #include "core/cgal_builder.h"
@@ -53,6 +54,20 @@ absl::Status CheckPosition(const Vec2& p, absl::string_view field,
   absl::Status s = CheckCoordinate(p.x, field, index, "x");
   if (!s.ok()) return s;
   return CheckCoordinate(p.y, field, index, "y");
+}
+
+Vec2 Midpoint(const Vec2& a, const Vec2& b) {
+  return {a.x + 0.5 * (b.x - a.x), a.y + 0.5 * (b.y - a.y)};
+}
+
+// The midpoint of a vertex's motion a -> b as a sub-step goal, when there is
+// one: inside the exact domain and strictly between the two ends.
+std::optional<Vec2> HalfwayGoal(const Vec2& a, const Vec2& b) {
+  const Vec2 h = Midpoint(a, b);
+  if (!InExactDomain(h.x) || !InExactDomain(h.y) || h == a || h == b) {
+    return std::nullopt;
+  }
+  return h;
 }
 
 }  // namespace
@@ -348,11 +363,8 @@ bool Triangulation::TryStep(const std::vector<Vec2>& to,
   // Split: move halfway, then the rest.
   std::vector<Vec2> mid = pos_;
   auto halfway = [&](size_t i) {
-    const Vec2& a = pos_[i];
-    const Vec2& b = to[i];
-    Vec2 h{a.x + 0.5 * (b.x - a.x), a.y + 0.5 * (b.y - a.y)};
-    if (!InExactDomain(h.x) || !InExactDomain(h.y)) h = b;
-    mid[i] = h;
+    const Vec2 h = Midpoint(pos_[i], to[i]);
+    mid[i] = InExactDomain(h.x) && InExactDomain(h.y) ? h : to[i];
   };
   ParallelFor(0, mid.size(), halfway);
   // Coincident points of one site move together.
@@ -559,11 +571,8 @@ bool Triangulation::LocalUpdate(const std::vector<Vec2>& next,
       for (uint32_t v : held) {
         if (halve_on_resume[v] && level[v] < kMaxHalvings) {
           halve_on_resume[v] = 0;
-          const Vec2& a = pos_[v];
-          const Vec2& b = next[v];
-          const Vec2 h{a.x + 0.5 * (b.x - a.x), a.y + 0.5 * (b.y - a.y)};
-          if (InExactDomain(h.x) && InExactDomain(h.y) && h != a && h != b) {
-            set_goal(v, h);
+          if (const auto h = HalfwayGoal(pos_[v], next[v])) {
+            set_goal(v, *h);
             ++level[v];
             continue;
           }
@@ -629,13 +638,9 @@ bool Triangulation::LocalUpdate(const std::vector<Vec2>& next,
           continue;
         }
         if (level[v] >= kMaxHalvings) continue;
-        const Vec2& a = pos_[v];
-        const Vec2& b = goal[v];
-        const Vec2 h{a.x + 0.5 * (b.x - a.x), a.y + 0.5 * (b.y - a.y)};
-        if (!InExactDomain(h.x) || !InExactDomain(h.y) || h == a || h == b) {
-          continue;
-        }
-        set_goal(v, h);
+        const auto h = HalfwayGoal(pos_[v], goal[v]);
+        if (!h) continue;
+        set_goal(v, *h);
         ++level[v];
         halved[v] = 1;
         any_halved = progress = true;
