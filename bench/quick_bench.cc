@@ -14,6 +14,7 @@
 #include <nanoflann.hpp>
 #include <random>
 #include <thread>
+#include <string>
 #include <vector>
 
 #include "absl/flags/flag.h"
@@ -31,6 +32,11 @@ ABSL_FLAG(double, sigma, 0.1,
           "1/sqrt(n)");
 ABSL_FLAG(int, threads, 0, "worker threads for Kinetri (0 = all cores)");
 ABSL_FLAG(uint64_t, seed, 1, "random seed");
+ABSL_FLAG(std::string, executor, "regions",
+          "CPU executor: regions (per-region stacks, the default) or rounds "
+          "(global rounds with atomic claims)");
+ABSL_FLAG(uint32_t, region_triangles, 0,
+          "triangles per region of the region executor (0 = its default)");
 ABSL_FLAG(int, max_subdivision_depth, -1,
           "override TriangulationOptions::max_subdivision_depth (-1: default)");
 
@@ -107,6 +113,17 @@ int main(int argc, char** argv) {
 
   kinetri::core::TriangulationOptions opt;
   opt.num_threads = threads;
+  const std::string executor = absl::GetFlag(FLAGS_executor);
+  if (executor == "rounds") {
+    opt.executor = kinetri::core::Executor::kRounds;
+  } else if (executor != "regions") {
+    std::fprintf(stderr, "--executor must be regions or rounds, not %s\n",
+                 executor.c_str());
+    return 2;
+  }
+  if (absl::GetFlag(FLAGS_region_triangles) > 0) {
+    opt.region.region_triangles = absl::GetFlag(FLAGS_region_triangles);
+  }
   if (absl::GetFlag(FLAGS_max_subdivision_depth) >= 0) {
     opt.max_subdivision_depth = absl::GetFlag(FLAGS_max_subdivision_depth);
   }
@@ -136,16 +153,19 @@ int main(int argc, char** argv) {
     update_total += up;
     cgal_total += cg;
     std::printf(
-        "step %d: update %.4f s (%s, substeps %u, re-inserted %u, fix flips "
-        "%llu, hull %llu/%llu, Delaunay flips %llu in %u rounds; fix %.3f s, "
-        "legalize %.3f s, re-insert %.3f s%s%s) | CGAL rebuild %.4f s | "
-        "ratio %.3f\n",
+        "step %d: update %.4f s (%s, substeps %u, held %u, halvings %u, "
+        "re-inserted %u, deferred %u, fix flips %llu, hull %llu/%llu, "
+        "Delaunay flips %llu in %u rounds; scan %.3f s, fix %.3f s, "
+        "legalize %.3f s, held %.3f s, re-insert %.3f s%s%s) | CGAL rebuild "
+        "%.4f s | ratio %.3f\n",
         s, up, kinetri::core::UpdatePathName(rep->path), rep->substeps,
-        rep->reinserted, (unsigned long long)rep->flips.interior_fix,
+        rep->held_vertices, rep->local_halvings, rep->reinserted,
+        rep->deferred, (unsigned long long)rep->flips.interior_fix,
         (unsigned long long)rep->flips.hull_absorb,
         (unsigned long long)rep->flips.hull_release,
         (unsigned long long)rep->flips.delaunay, rep->flips.legalize_rounds,
-        rep->fix_seconds, rep->legalize_seconds, rep->reinsert_seconds,
+        rep->scan_seconds, rep->fix_seconds, rep->legalize_seconds,
+        rep->held_seconds, rep->reinsert_seconds,
         rep->fallback_reason.empty() ? "" : "; rebuilt because: ",
         rep->fallback_reason.c_str(), cg, up / cg);
     std::fflush(stdout);

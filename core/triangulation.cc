@@ -135,6 +135,14 @@ absl::StatusOr<Triangulation> Triangulation::Create(
     return absl::InvalidArgumentError(
         "max_halvings must be in [0, 30] and max_passes >= 1");
   }
+  const RegionStepPolicy& rp = options.region;
+  if (rp.region_triangles < 16 || rp.max_halvings < 0 ||
+      rp.max_halvings > 60 || rp.max_passes < 1 || rp.max_passes > 1024 ||
+      !(rp.sparse_fraction >= 0.0 && rp.sparse_fraction <= 1.0)) {
+    return absl::InvalidArgumentError(
+        "region policy: region_triangles must be >= 16, max_halvings in "
+        "[0, 60], max_passes in [1, 1024], sparse_fraction in [0, 1]");
+  }
   if (options.max_subdivision_depth < 0 || options.max_subdivision_depth > 16) {
     return absl::InvalidArgumentError(
         "max_subdivision_depth must be in [0, 16]");
@@ -459,16 +467,25 @@ bool Triangulation::InsertBatch(std::vector<uint32_t> pending,
     }
     std::vector<uint32_t> invalid =
         KineticExecutor::FindInvalidTriangles(mesh_, pos_, &inserted);
-    if (!KineticExecutor::Fix(mesh_, pos_, std::move(invalid), scratch_,
-                              &report->flips, &touched, nullptr, nullptr)) {
-      return false;
-    }
+    const bool regions = options_.executor == Executor::kRegions;
+    const bool fixed =
+        regions ? RegionExecutor::FixSerial(mesh_, pos_, invalid,
+                                            &report->flips, &touched, nullptr,
+                                            nullptr)
+                : KineticExecutor::Fix(mesh_, pos_, std::move(invalid),
+                                       scratch_, &report->flips, &touched,
+                                       nullptr, nullptr);
+    if (!fixed) return false;
     std::vector<uint32_t> seeds =
         KineticExecutor::TrianglesAround(mesh_, inserted);
     seeds.insert(seeds.end(), touched.begin(), touched.end());
     std::sort(seeds.begin(), seeds.end());
     seeds.erase(std::unique(seeds.begin(), seeds.end()), seeds.end());
-    KineticExecutor::Legalize(mesh_, pos_, &seeds, scratch_, &report->flips);
+    if (regions) {
+      RegionExecutor::LegalizeSerial(mesh_, pos_, seeds, &report->flips);
+    } else {
+      KineticExecutor::Legalize(mesh_, pos_, &seeds, scratch_, &report->flips);
+    }
     pending = std::move(deferred);
   }
   return true;
@@ -480,33 +497,7 @@ bool Triangulation::LocalUpdate(const std::vector<Vec2>& next,
   const uint32_t n = size();
   // 1. Coincident points that part from their site are detached and
   //    inserted again at the end.
-  std::vector<uint32_t> reinsert;
-  if (has_duplicates_) {
-    std::vector<uint8_t> leave(n, 0);
-    bool any = false;
-    for (uint32_t i = 0; i < n; ++i) {
-      if (rep_[i] != i && next[i] != next[rep_[i]]) leave[i] = any = 1;
-    }
-    if (any) {
-      for (uint32_t r : sites_) {
-        uint32_t last = r;
-        for (uint32_t p = dup_next_[r]; p != kNoVertex;) {
-          const uint32_t following = dup_next_[p];
-          if (leave[p]) {
-            dup_next_[p] = kNoVertex;
-            rep_[p] = p;
-            reinsert.push_back(p);
-          } else {
-            dup_next_[last] = p;
-            last = p;
-          }
-          p = following;
-        }
-        dup_next_[last] = kNoVertex;
-      }
-      // Detached points that land together re-form a site on insertion.
-    }
-  }
+  std::vector<uint32_t> reinsert = DetachPartingPoints(next);
   // 2. Kinetic step. Vertices of triangles that fixing cannot repair have
   //    their own motion halved (a local sub-step) and finish it in later
   //    sub-steps; after kMaxHalvings they are removed and re-inserted.
@@ -699,8 +690,49 @@ bool Triangulation::LocalUpdate(const std::vector<Vec2>& next,
     return false;
   }
   // 3. Insert removed vertices and detached points at their new positions.
-  pos_ = next;
   reinsert.insert(reinsert.end(), removed.begin(), removed.end());
+  return FinishLocalStep(next, std::move(reinsert), hints, report, reason);
+}
+
+std::vector<uint32_t> Triangulation::DetachPartingPoints(
+    const std::vector<Vec2>& next) {
+  const uint32_t n = size();
+  std::vector<uint32_t> reinsert;
+  if (has_duplicates_) {
+    std::vector<uint8_t> leave(n, 0);
+    bool any = false;
+    for (uint32_t i = 0; i < n; ++i) {
+      if (rep_[i] != i && next[i] != next[rep_[i]]) leave[i] = any = 1;
+    }
+    if (any) {
+      for (uint32_t r : sites_) {
+        uint32_t last = r;
+        for (uint32_t p = dup_next_[r]; p != kNoVertex;) {
+          const uint32_t following = dup_next_[p];
+          if (leave[p]) {
+            dup_next_[p] = kNoVertex;
+            rep_[p] = p;
+            reinsert.push_back(p);
+          } else {
+            dup_next_[last] = p;
+            last = p;
+          }
+          p = following;
+        }
+        dup_next_[last] = kNoVertex;
+      }
+      // Detached points that land together re-form a site on insertion.
+    }
+  }
+  return reinsert;
+}
+
+bool Triangulation::FinishLocalStep(const std::vector<Vec2>& next,
+                                    std::vector<uint32_t> reinsert,
+                                    std::vector<uint32_t>& hints,
+                                    StepReport* report, std::string* reason) {
+  const uint32_t n = size();
+  pos_ = next;
   std::sort(reinsert.begin(), reinsert.end());
   for (uint32_t v : reinsert) {
     if (hints[v] < n && rep_[hints[v]] != hints[v]) hints[v] = kNoVertex;
@@ -720,6 +752,42 @@ bool Triangulation::LocalUpdate(const std::vector<Vec2>& next,
     if (dup_next_[i] != kNoVertex) has_duplicates_ = true;
   }
   return true;
+}
+
+bool Triangulation::RegionUpdate(const std::vector<Vec2>& next,
+                                 const std::vector<uint32_t>& moved_points,
+                                 StepReport* report, std::string* reason) {
+  const uint32_t n = size();
+  std::vector<uint32_t> reinsert = DetachPartingPoints(next);
+  const auto& ve = mesh_.vertex_edge();
+  std::vector<uint32_t> moved;
+  moved.reserve(moved_points.size());
+  for (uint32_t i : moved_points) {
+    if (rep_[i] == i && ve[i] != kNoEdge && next[i] != pos_[i]) {
+      moved.push_back(i);
+    }
+  }
+  std::vector<uint32_t> removed;
+  std::vector<uint32_t> hints(n, kNoVertex);
+  RegionStepStats stats;
+  const bool ok =
+      moved.empty() ||
+      region_executor_.Step(mesh_, pos_, next, moved, options_.region, &stats,
+                            &removed, &hints, reason);
+  report->flips += stats.flips;
+  report->held_vertices = stats.held;
+  report->local_halvings = stats.halvings;
+  report->failed_attempts =
+      stats.fix_attempts > 0 ? stats.fix_attempts - 1 : 0;
+  report->deferred = stats.deferred;
+  report->substeps = stats.held > 0 ? 2 : 1;
+  report->scan_seconds += stats.scan_seconds;
+  report->fix_seconds += stats.fix_seconds;
+  report->legalize_seconds += stats.legalize_seconds;
+  report->held_seconds += stats.held_seconds;
+  if (!ok) return false;
+  reinsert.insert(reinsert.end(), removed.begin(), removed.end());
+  return FinishLocalStep(next, std::move(reinsert), hints, report, reason);
 }
 
 absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
@@ -820,7 +888,9 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
     if (mesh_.empty()) {
       reason = "fewer than two dimensions (line mode)";
     } else {
-      ok = LocalUpdate(next, moved, &report, &reason);
+      ok = options_.executor == Executor::kRegions
+               ? RegionUpdate(next, moved, &report, &reason)
+               : LocalUpdate(next, moved, &report, &reason);
     }
     if (ok) {
       report.path = report.reinserted > 0 ? UpdatePath::kReinserted

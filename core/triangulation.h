@@ -41,13 +41,25 @@
 #include "absl/types/span.h"
 #include "core/kinetic.h"
 #include "core/mesh.h"
+#include "core/region_executor.h"
 #include "core/triangulation_view.h"
 #include "core/vec2.h"
 
 namespace kinetri::core {
 
+// Which CPU executor repairs the mesh after a move.
+enum class Executor {
+  kRegions,  // per-region stacks, one dense pass (core/region_executor.h)
+  kRounds,   // global rounds with atomic claims (core/kinetic.h): the
+             // GPU-shaped schedule, kept as an option and a test oracle
+};
+
 struct TriangulationOptions {
   int num_threads = 0;  // 0: all cores
+  Executor executor = Executor::kRegions;
+  // Knobs of the region executor (the fields below the next one are the
+  // round executor's).
+  RegionStepPolicy region;
   // Whole-step splitting: a step whose fixing gets stuck is split into at
   // most 2^depth sub-steps for all points. 0 (default) leaves splitting to
   // the cheaper local sub-steps: only the stuck vertices' motion is halved
@@ -91,6 +103,8 @@ struct StepReport {
   uint32_t failed_attempts = 0;  // fixing attempts that got stuck
   uint32_t reinserted = 0;       // vertices removed and inserted again locally
   uint32_t local_halvings = 0;   // rounds that halved stuck vertices' motion
+  uint32_t held_vertices = 0;    // region executor: vertices moved alone
+  uint32_t deferred = 0;         // region executor: boundary elements
   FlipCounts flips;
   std::string fallback_reason;  // why the step was rebuilt, if it was
   bool renumbered = false;
@@ -101,6 +115,8 @@ struct StepReport {
   double fix_seconds = 0.0;
   double legalize_seconds = 0.0;
   double reinsert_seconds = 0.0;
+  double scan_seconds = 0.0;  // region executor: scan and hold-back
+  double held_seconds = 0.0;  // region executor: held vertices moved alone
 };
 
 class Triangulation {
@@ -161,7 +177,20 @@ class Triangulation {
   bool TryStep(const std::vector<Vec2>& to, const std::vector<uint32_t>* moved,
                const std::vector<uint32_t>* seeds, int depth,
                StepReport* report, std::vector<uint32_t>* stuck_vertices);
-  // Kinetic path with re-insertion; false (with reason) means rebuild.
+  // Coincident points whose positions in `next` leave their site: detached
+  // from it (they are inserted again at the end of the step).
+  std::vector<uint32_t> DetachPartingPoints(const std::vector<Vec2>& next);
+  // Moves to `next` and inserts the vertices in `reinsert` (removed from the
+  // mesh or detached) at their new positions; refreshes the site list.
+  bool FinishLocalStep(const std::vector<Vec2>& next,
+                       std::vector<uint32_t> reinsert,
+                       std::vector<uint32_t>& hints, StepReport* report,
+                       std::string* reason);
+  // Kinetic path of the region executor; false (with reason): rebuild.
+  bool RegionUpdate(const std::vector<Vec2>& next,
+                    const std::vector<uint32_t>& moved_points,
+                    StepReport* report, std::string* reason);
+  // Kinetic path of the round executor; false (with reason): rebuild.
   bool LocalUpdate(const std::vector<Vec2>& next,
                    const std::vector<uint32_t>& moved_points,
                    StepReport* report, std::string* reason);
@@ -193,6 +222,7 @@ class Triangulation {
   std::unique_ptr<AdjacencyCache> adjacency_;
 
   FlipScratch scratch_;
+  RegionExecutor region_executor_;
   bool too_tangled_ = false;
   std::vector<uint32_t> removal_touched_;
   double baseline_span_ = 0.0;

@@ -7,6 +7,7 @@
 #include <string>
 
 #include "core/triangulation.h"
+#include "tests/core/executor_under_test.h"
 #include "tests/core/test_util.h"
 
 namespace kinetri::core {
@@ -68,7 +69,7 @@ class BrownianTest : public ::testing::TestWithParam<double> {};
 TEST_P(BrownianTest, EveryStepIsExactDelaunay) {
   const size_t n = 2000;
   const double spacing = 1.0 / std::sqrt(double(n));
-  auto t = Triangulation::Create(testing::UniformPoints(n, 11));
+  auto t = Triangulation::Create(testing::UniformPoints(n, 11), testing::ExecutorOptions());
   ASSERT_TRUE(t.ok());
   std::mt19937_64 rng(12);
   const double f = GetParam();
@@ -85,7 +86,7 @@ TEST_P(BrownianTest, LocalRepairAloneStaysExactForLargeMotion) {
   // steps go through fixing, local sub-steps and re-insertion.
   const size_t n = 1500;
   const double spacing = 1.0 / std::sqrt(double(n));
-  TriangulationOptions opt;
+  TriangulationOptions opt = testing::ExecutorOptions();
   opt.rebuild_fraction = 1.0;
   opt.max_passes = 64;
   auto t = Triangulation::Create(testing::UniformPoints(n, 13), opt);
@@ -107,7 +108,7 @@ INSTANTIATE_TEST_SUITE_P(Spacings, BrownianTest,
 TEST(Kinetic, ShearFlow) {
   const size_t n = 2000;
   auto pts = testing::UniformPoints(n, 21);
-  auto t = Triangulation::Create(pts);
+  auto t = Triangulation::Create(pts, testing::ExecutorOptions());
   ASSERT_TRUE(t.ok());
   const PathTally tally = RunSequence(*t, 15, [&](int) {
     std::vector<Vec2> d(n);
@@ -122,7 +123,7 @@ TEST(Kinetic, ClusteringAggregationAndDispersal) {
   // DLA-like: points drift onto a few attractors (clusters tighten until
   // points nearly coincide), then disperse again.
   const size_t n = 1500;
-  auto t = Triangulation::Create(testing::UniformPoints(n, 31));
+  auto t = Triangulation::Create(testing::UniformPoints(n, 31), testing::ExecutorOptions());
   ASSERT_TRUE(t.ok());
   const std::vector<Vec2> attractors = {{0.2, 0.3}, {0.7, 0.8}, {0.6, 0.2}};
   std::mt19937_64 rng(32);
@@ -142,7 +143,7 @@ TEST(Kinetic, ClusteringAggregationAndDispersal) {
 
 TEST(Kinetic, HullExpandsAndContracts) {
   const size_t n = 1000;
-  auto t = Triangulation::Create(testing::UniformPoints(n, 41, 2.0, -1.0));
+  auto t = Triangulation::Create(testing::UniformPoints(n, 41, 2.0, -1.0), testing::ExecutorOptions());
   ASSERT_TRUE(t.ok());
   std::mt19937_64 rng(42);
   std::normal_distribution<double> g(0.0, 0.01);
@@ -160,7 +161,7 @@ TEST(Kinetic, HullExpandsAndContracts) {
 TEST(Kinetic, WholeStepSubdivision) {
   // The optional whole-step split (note §3.2) on top of the local sub-steps.
   const size_t n = 1500;
-  TriangulationOptions opt;
+  TriangulationOptions opt = testing::ExecutorOptions();
   opt.max_subdivision_depth = 2;
   opt.rebuild_fraction = 1.0;
   auto t = Triangulation::Create(testing::UniformPoints(n, 131), opt);
@@ -172,7 +173,7 @@ TEST(Kinetic, WholeStepSubdivision) {
 
 TEST(Kinetic, SparseUpdates) {
   const size_t n = 3000;
-  auto t = Triangulation::Create(testing::UniformPoints(n, 51));
+  auto t = Triangulation::Create(testing::UniformPoints(n, 51), testing::ExecutorOptions());
   ASSERT_TRUE(t.ok());
   std::mt19937_64 rng(52);
   std::uniform_int_distribution<uint32_t> pick(0, n - 1);
@@ -196,7 +197,7 @@ TEST(Kinetic, SparseUpdates) {
 TEST(Kinetic, LatticeStaysCocircularUnderExactMotion) {
   auto pts = testing::Lattice(25, 0.125);
   const size_t n = pts.size();
-  auto t = Triangulation::Create(pts);
+  auto t = Triangulation::Create(pts, testing::ExecutorOptions());
   ASSERT_TRUE(t.ok());
   std::mt19937_64 rng(61);
   std::uniform_int_distribution<int> u(-2, 2);
@@ -216,7 +217,7 @@ TEST(Kinetic, LatticeStaysCocircularUnderExactMotion) {
 TEST(Kinetic, DuplicatesMergeAndSeparate) {
   const size_t n = 600;
   auto pts = testing::UniformPoints(n, 71);
-  auto t = Triangulation::Create(pts);
+  auto t = Triangulation::Create(pts, testing::ExecutorOptions());
   ASSERT_TRUE(t.ok());
   // Step 1: every point of the second half lands exactly on its partner.
   std::vector<uint32_t> ids;
@@ -253,7 +254,7 @@ TEST(Kinetic, DuplicatesMergeAndSeparate) {
 TEST(Kinetic, CollinearBecomesPlanarAndBack) {
   auto line = testing::Collinear(200, 81);
   const size_t n = line.size();
-  auto t = Triangulation::Create(line);
+  auto t = Triangulation::Create(line, testing::ExecutorOptions());
   ASSERT_TRUE(t.ok());
   EXPECT_FALSE(t->is_planar());
   std::vector<Vec2> d(n, Vec2{0, 0});
@@ -273,7 +274,7 @@ TEST(Kinetic, CollinearBecomesPlanarAndBack) {
 TEST(Kinetic, ExtremeScalesMove) {
   for (double scale : {1e-12, 1e12}) {
     const size_t n = 800;
-    auto t = Triangulation::Create(testing::UniformPoints(n, 91, scale));
+    auto t = Triangulation::Create(testing::UniformPoints(n, 91, scale), testing::ExecutorOptions());
     ASSERT_TRUE(t.ok());
     std::mt19937_64 rng(92);
     RunSequence(*t, 6, [&](int) {
@@ -285,10 +286,10 @@ TEST(Kinetic, ExtremeScalesMove) {
 TEST(Kinetic, ResultIndependentOfThreadCount) {
   const size_t n = 4000;
   const auto pts = testing::UniformPoints(n, 101);
-  TriangulationOptions one;
+  TriangulationOptions one = testing::ExecutorOptions();
   one.num_threads = 1;
   auto a = Triangulation::Create(pts, one);
-  auto b = Triangulation::Create(pts);
+  auto b = Triangulation::Create(pts, testing::ExecutorOptions());
   ASSERT_TRUE(a.ok() && b.ok());
   std::mt19937_64 rng_a(102), rng_b(102);
   for (int s = 0; s < 8; ++s) {
@@ -313,7 +314,7 @@ TEST(Kinetic, ResultIndependentOfThreadCount) {
 
 TEST(Kinetic, BadInputIsRejectedAndChangesNothing) {
   const size_t n = 300;
-  auto t = Triangulation::Create(testing::UniformPoints(n, 111));
+  auto t = Triangulation::Create(testing::UniformPoints(n, 111), testing::ExecutorOptions());
   ASSERT_TRUE(t.ok());
   const auto before_pos = t->Positions();
   const auto before_edges = t->Edges();
@@ -373,7 +374,7 @@ TEST(Kinetic, RenumberingKeepsIdsAndMesh) {
   // triggers: the internal numbering is refreshed each step while callers'
   // ids, positions and the Delaunay edges stay exact.
   const size_t n = 2500;
-  TriangulationOptions opt;
+  TriangulationOptions opt = testing::ExecutorOptions();
   opt.renumber_check_interval = 1;
   opt.renumber_stretch = 0.0;
   auto pts = testing::UniformPoints(n, 121);

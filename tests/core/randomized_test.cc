@@ -7,6 +7,7 @@
 #include <random>
 
 #include "core/triangulation.h"
+#include "tests/core/executor_under_test.h"
 #include "tests/core/test_util.h"
 
 namespace kinetri::core {
@@ -22,7 +23,7 @@ void RunScenario(uint64_t seed) {
       : kind == 2 ? testing::Lattice(static_cast<int>(std::sqrt(n)), 0.125)
                   : testing::WithDuplicates(n / 2, 2, seed);
   n = pts.size();
-  TriangulationOptions opt;
+  TriangulationOptions opt = testing::ExecutorOptions();
   if (rng() % 2) {  // exercise the local machinery on large steps too
     opt.rebuild_fraction = 1.0;
     opt.max_passes = 64;

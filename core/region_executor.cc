@@ -1,0 +1,704 @@
+// CPU executor of the kinetic update: per-region stacks (see the header).
+#include "core/region_executor.h"
+
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <optional>
+
+#include "absl/strings/str_cat.h"
+#include "core/flip_rules.h"
+#include "core/parallel.h"
+#include "core/predicates.h"
+#include "core/vertex_ops.h"
+
+namespace kinetri::core {
+
+void RegionExecutor::Region::ClearWork() {
+  stack.clear();
+  waiting.clear();
+  deferred.clear();
+  log.clear();
+  counts = FlipCounts{};
+}
+
+namespace {
+
+double SecondsSince(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0)
+      .count();
+}
+
+// A contiguous range of triangle slots; kAll admits every slot.
+struct Bounds {
+  uint32_t lo = 0;
+  uint32_t hi = 0xFFFFFFFFu;
+  bool In(uint32_t t) const { return t - lo < hi - lo; }
+};
+
+// Every triangle around the origin of e0 lies in b (e0's triangle does).
+// Reads only slots of triangles already known to lie in b.
+bool StarIn(const MeshView& m, uint32_t e0, Bounds b) {
+  uint32_t x = e0;
+  for (uint32_t i = 0; i < (1u << 16); ++i) {
+    const uint32_t y = m.twin[Prev(x)];
+    if (!b.In(TriangleOf(y))) return false;
+    if (y == e0) return true;
+    x = y;
+  }
+  return false;
+}
+
+// Everything rules::ProposeFixFlip(t) reads and its flip writes lies in b:
+// t, its neighbours, and the stars of t's vertices and of the vertices
+// across t's edges (the Adjacent/OnHull walks, and the footprint).
+bool FixReadsIn(const MeshView& m, uint32_t t, Bounds b) {
+  for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
+    if (!b.In(TriangleOf(m.twin[e]))) return false;
+  }
+  for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
+    if (m.origin[e] != kInfiniteVertex && !StarIn(m, e, b)) return false;
+    const uint32_t h = Prev(m.twin[e]);
+    if (m.origin[h] != kInfiniteVertex && !StarIn(m, h, b)) return false;
+  }
+  return true;
+}
+
+void CountFix(uint32_t kind, FlipCounts* c) {
+  switch (kind) {
+    case rules::kInteriorFlip:
+      ++c->interior_fix;
+      break;
+    case rules::kHullAbsorb:
+      ++c->hull_absorb;
+      break;
+    case rules::kHullRelease:
+      ++c->hull_release;
+      break;
+    default:
+      break;
+  }
+}
+
+// Fixing with a LIFO stack inside b. Invalid triangles with no repairing
+// flip wait until a flip has happened since they were looked at; what is
+// left in `waiting` at the end is stuck (for this region). `mesh` non-null:
+// vertex_edge is kept up to date (serial use only).
+template <bool kBounded>
+void FixLoop(const MeshView& m, const Vec2* p, Bounds b,
+             std::vector<uint32_t>& stack, std::vector<uint32_t>& waiting,
+             std::vector<uint32_t>& deferred, std::vector<uint32_t>* log,
+             FlipCounts* counts, uint8_t* mark, Mesh* mesh) {
+  while (true) {
+    bool progress = false;
+    while (!stack.empty()) {
+      const uint32_t t = stack.back();
+      stack.pop_back();
+      if (rules::TriangleOk(m, p, t)) continue;
+      if (kBounded && !FixReadsIn(m, t, b)) {
+        deferred.push_back(t);
+        continue;
+      }
+      const rules::FixProposal prop = rules::ProposeFixFlip(m, p, t);
+      if (prop.edge == kNoEdge) {
+        waiting.push_back(t);
+        continue;
+      }
+      uint32_t fp[6];
+      rules::FlipFootprint(m, prop.edge, fp);
+      if (kBounded) {
+        bool inside = true;
+        for (uint32_t x : fp) inside = inside && b.In(x);
+        if (!inside) {
+          deferred.push_back(t);
+          continue;
+        }
+      }
+      m.Flip(prop.edge);
+      if (mesh) mesh->UpdateVertexEdgesAfterFlip(prop.edge);
+      if (log) log->push_back(prop.edge);
+      CountFix(prop.kind, counts);
+      if (mark) mark[fp[0]] = mark[fp[1]] = 1;
+      progress = true;
+      for (int k = 5; k >= 0; --k) stack.push_back(fp[k]);
+    }
+    if (waiting.empty() || !progress) return;
+    stack.swap(waiting);
+  }
+}
+
+// Delaunay flips with a LIFO stack of half-edges inside b (each half-edge's
+// own triangle lies in b).
+template <bool kBounded>
+void LegalizeLoop(const MeshView& m, const Vec2* p, Bounds b,
+                  std::vector<uint32_t>& stack,
+                  std::vector<uint32_t>& deferred, FlipCounts* counts,
+                  uint8_t* mark, Mesh* mesh) {
+  while (!stack.empty()) {
+    const uint32_t e = stack.back();
+    stack.pop_back();
+    if (m.origin[e] == kNoVertex) continue;  // free slot
+    const uint32_t f = m.twin[e];
+    if (kBounded && !b.In(TriangleOf(f))) {
+      deferred.push_back(e);
+      continue;
+    }
+    if (!rules::IsIllegal(m, p, e)) continue;
+    if (kBounded &&
+        !(b.In(TriangleOf(m.twin[Next(e)])) &&
+          b.In(TriangleOf(m.twin[Prev(e)])) &&
+          b.In(TriangleOf(m.twin[Next(f)])) &&
+          b.In(TriangleOf(m.twin[Prev(f)])))) {
+      deferred.push_back(e);
+      continue;
+    }
+    m.Flip(e);
+    if (mesh) mesh->UpdateVertexEdgesAfterFlip(e);
+    ++counts->delaunay;
+    if (mark) mark[TriangleOf(e)] = mark[TriangleOf(f)] = 1;
+    stack.push_back(Next(e));
+    stack.push_back(Prev(e));
+    stack.push_back(Next(f));
+    stack.push_back(Prev(f));
+  }
+}
+
+// Triangles around vertex v (vertex_edge valid), appended to out.
+void AppendStar(const Mesh& mesh, uint32_t v, std::vector<uint32_t>* out) {
+  const MeshView m = mesh.view();
+  const uint32_t e0 = mesh.vertex_edge()[v];
+  if (e0 == kNoEdge) return;
+  uint32_t e = e0;
+  do {
+    out->push_back(TriangleOf(e));
+    e = m.twin[Prev(e)];
+  } while (e != e0);
+}
+
+// The star of v plus, for its ghost triangles, their neighbours (the hull
+// turns at v's hull neighbours depend on v too).
+void AppendStarAndHullRing(const Mesh& mesh, uint32_t v,
+                           std::vector<uint32_t>* out) {
+  const size_t begin = out->size();
+  AppendStar(mesh, v, out);
+  const MeshView m = mesh.view();
+  const size_t end = out->size();
+  for (size_t i = begin; i < end; ++i) {
+    const uint32_t t = (*out)[i];
+    if (!m.IsGhost(t)) continue;
+    for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
+      out->push_back(TriangleOf(m.twin[e]));
+    }
+  }
+}
+
+inline void AtomicMin(uint32_t* slot, uint32_t value) {
+  std::atomic_ref<uint32_t> ref(*slot);
+  uint32_t cur = ref.load(std::memory_order_relaxed);
+  while (value < cur &&
+         !ref.compare_exchange_weak(cur, value, std::memory_order_relaxed)) {
+  }
+}
+
+void Undo(const MeshView& m, const std::vector<uint32_t>& log, Mesh* mesh) {
+  for (auto it = log.rbegin(); it != log.rend(); ++it) {
+    m.Flip(*it);
+    m.Flip(*it);
+    m.Flip(*it);
+    if (mesh) mesh->UpdateVertexEdgesAfterFlip(*it);
+  }
+}
+
+std::optional<Vec2> Halfway(const Vec2& a, const Vec2& b) {
+  const Vec2 h{a.x + 0.5 * (b.x - a.x), a.y + 0.5 * (b.y - a.y)};
+  if (!InExactDomain(h.x) || !InExactDomain(h.y) || h == a || h == b) {
+    return std::nullopt;
+  }
+  return h;
+}
+
+double Dist2(const Vec2& a, const Vec2& b) {
+  const double dx = a.x - b.x, dy = a.y - b.y;
+  return dx * dx + dy * dy;
+}
+
+}  // namespace
+
+bool HullWindsOnceFrom(const Mesh& mesh, const std::vector<Vec2>& pos,
+                       uint32_t* ghost_hint) {
+  const MeshView m = mesh.view();
+  const uint32_t nt = mesh.num_triangles();
+  uint32_t g0 = *ghost_hint;
+  if (g0 >= nt || m.IsFree(g0) || !m.IsGhost(g0)) {
+    g0 = 0;
+    while (g0 < nt && (m.IsFree(g0) || !m.IsGhost(g0))) ++g0;
+    if (g0 == nt) return false;
+    *ghost_hint = g0;
+  }
+  auto above = [&](uint32_t u, uint32_t v) {  // (y, x) lexicographic u > v
+    const Vec2 &a = pos[u], &b = pos[v];
+    return a.y > b.y || (a.y == b.y && a.x > b.x);
+  };
+  uint32_t g = g0;
+  size_t steps = 0, tops = 0;
+  do {
+    const uint32_t s = rules::SpokeOf(m, g);
+    if (s == kNoEdge) return false;
+    const uint32_t a = m.origin[s];
+    const uint32_t pv = rules::SpokePrev(m, s), nx = rules::SpokeNext(m, s);
+    if (pv == kInfiniteVertex || nx == kInfiniteVertex) return false;
+    if (above(a, pv) && above(a, nx)) ++tops;
+    g = TriangleOf(m.twin[Next(s)]);
+    if (++steps > nt) return false;
+  } while (g != g0);
+  return steps >= 3 && tops == 1;
+}
+
+void RegionExecutor::Hold(uint32_t v) {
+  held_[v] = 1;
+  held_list_.push_back(v);
+  cur_[v] = (*from_)[v];
+}
+
+void RegionExecutor::HoldCulprits(const Mesh& mesh,
+                                  std::vector<uint32_t> queue) {
+  const MeshView m = mesh.view();
+  const Vec2* p = cur_.data();
+  std::vector<uint32_t> around;
+  for (size_t i = 0; i < queue.size(); ++i) {
+    const uint32_t t = queue[i];
+    if (rules::TriangleOk(m, p, t)) continue;
+    if (rules::ProposeFixFlip(m, p, t).edge != kNoEdge) continue;
+    // The vertices TriangleOk(t) reads.
+    uint32_t cand[3];
+    if (m.IsGhost(t)) {
+      const uint32_t s = rules::SpokeOf(m, t);
+      if (s == kNoEdge) continue;
+      cand[0] = rules::SpokePrev(m, s);
+      cand[1] = m.origin[s];
+      cand[2] = rules::SpokeNext(m, s);
+    } else {
+      for (int k = 0; k < 3; ++k) cand[k] = m.origin[3 * t + k];
+    }
+    // Culprit: the moving vertex whose old position alone makes t valid
+    // (the one that moved farthest if several do); else all moving ones.
+    uint32_t best = kNoVertex;
+    double best_d = -1.0;
+    bool any_moving = false;
+    for (uint32_t u : cand) {
+      if (u >= held_.size() || held_[u] || cur_[u] == (*from_)[u]) continue;
+      any_moving = true;
+      const Vec2 saved = cur_[u];
+      cur_[u] = (*from_)[u];
+      const bool ok = rules::TriangleOk(m, p, t);
+      cur_[u] = saved;
+      const double d = Dist2(saved, (*from_)[u]);
+      if (ok && d > best_d) {
+        best = u;
+        best_d = d;
+      }
+    }
+    if (!any_moving) continue;
+    std::vector<uint32_t> culprits;
+    if (best != kNoVertex) {
+      culprits.push_back(best);
+    } else {
+      for (uint32_t u : cand) {
+        if (u < held_.size() && !held_[u] && cur_[u] != (*from_)[u]) {
+          culprits.push_back(u);
+        }
+      }
+    }
+    for (uint32_t u : culprits) {
+      if (held_[u]) continue;
+      Hold(u);
+      around.clear();
+      AppendStarAndHullRing(mesh, u, &around);
+      for (uint32_t x : around) {
+        if (!rules::TriangleOk(m, p, x)) queue.push_back(x);
+      }
+    }
+  }
+}
+
+bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
+                              const RegionStepPolicy& policy,
+                              RegionStepStats* stats, std::string* reason) {
+  (void)moved;
+  const MeshView m = mesh.view();
+  const uint32_t rt = policy.region_triangles;
+  const uint32_t nt = mesh.num_triangles();
+  Region serial;
+  std::vector<uint32_t> around;
+  for (int attempt = 0; attempt < policy.max_passes; ++attempt) {
+    ++stats->fix_attempts;
+    const Vec2* p = cur_.data();
+    // Fix every region in parallel; nothing crosses a region boundary.
+    tbb::parallel_for(
+        tbb::blocked_range<size_t>(0, regions_.size(), 1),
+        [&](const tbb::blocked_range<size_t>& range) {
+          for (size_t r = range.begin(); r != range.end(); ++r) {
+            Region& g = regions_[r];
+            g.ClearWork();
+            if (g.invalid.empty()) continue;
+            g.stack.assign(g.invalid.rbegin(), g.invalid.rend());
+            const Bounds b{static_cast<uint32_t>(r * rt),
+                           static_cast<uint32_t>(
+                               std::min<size_t>(nt, (r + 1) * size_t{rt}))};
+            FixLoop<true>(m, p, b, g.stack, g.waiting, g.deferred, &g.log,
+                          &g.counts, tri_mark_.data(), nullptr);
+          }
+        });
+    // The serial pass: boundary elements and region-stuck triangles.
+    serial.ClearWork();
+    for (Region& g : regions_) {
+      serial.stack.insert(serial.stack.end(), g.waiting.rbegin(),
+                          g.waiting.rend());
+      serial.stack.insert(serial.stack.end(), g.deferred.rbegin(),
+                          g.deferred.rend());
+      stats->deferred += static_cast<uint32_t>(g.deferred.size());
+    }
+    FixLoop<false>(m, p, Bounds{}, serial.stack, serial.waiting,
+                   serial.deferred, &serial.log, &serial.counts,
+                   tri_mark_.data(), nullptr);
+    const bool stuck = !serial.waiting.empty();
+    if (!stuck && HullWindsOnceFrom(mesh, cur_, &hull_hint_)) {
+      for (const Region& g : regions_) stats->flips += g.counts;
+      stats->flips += serial.counts;
+      ++stats->flips.fix_rounds;
+      return true;
+    }
+    // Stuck (or a hull that winds twice): hold the moving vertices of the
+    // stuck triangles (or of the hull) too, undo everything and repeat.
+    std::vector<uint32_t> culprits;
+    if (stuck) {
+      for (uint32_t t : serial.waiting) {
+        for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
+          culprits.push_back(m.origin[e]);
+        }
+      }
+    } else {
+      for (uint32_t t = 0; t < nt; ++t) {
+        if (m.IsFree(t) || !m.IsGhost(t)) continue;
+        for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
+          culprits.push_back(m.origin[e]);
+        }
+      }
+    }
+    Undo(m, serial.log, nullptr);
+    for (auto it = regions_.rbegin(); it != regions_.rend(); ++it) {
+      Undo(m, it->log, nullptr);
+    }
+    bool held_any = false;
+    for (uint32_t v : culprits) {
+      if (v >= held_.size() || held_[v] || cur_[v] == (*from_)[v]) continue;
+      Hold(v);
+      held_any = true;
+      around.clear();
+      AppendStarAndHullRing(mesh, v, &around);
+      for (uint32_t t : around) {
+        regions_[t / rt].invalid.push_back(t);
+        tri_mark_[t] = 1;
+      }
+    }
+    if (!held_any) {
+      *reason = stuck ? "fixing stuck with every culprit held"
+                      : "hull winds twice with every hull vertex held";
+      return false;
+    }
+  }
+  *reason = absl::StrCat("fixing still stuck after ", policy.max_passes,
+                         " dense attempts");
+  return false;
+}
+
+bool RegionExecutor::MoveHeld(Mesh& mesh, uint32_t v, const Vec2& target,
+                              const RegionStepPolicy& policy,
+                              RegionStepStats* stats) {
+  const MeshView m = mesh.view();
+  std::vector<uint32_t> around, stack, waiting, deferred, log;
+  FlipCounts counts;
+  Vec2 goal = target;
+  int halvings = 0;
+  while (true) {
+    const Vec2 old = cur_[v];
+    cur_[v] = goal;
+    const Vec2* p = cur_.data();
+    around.clear();
+    AppendStarAndHullRing(mesh, v, &around);
+    bool hull_near = false;
+    stack.clear();
+    for (uint32_t t : around) {
+      if (m.IsGhost(t)) hull_near = true;
+      if (!rules::TriangleOk(m, p, t)) stack.push_back(t);
+    }
+    waiting.clear();
+    log.clear();
+    FlipCounts c;
+    FixLoop<false>(m, p, Bounds{}, stack, waiting, deferred, &log, &c,
+                   tri_mark_.data(), &mesh);
+    const bool hull_changed = c.hull_absorb + c.hull_release > 0;
+    const bool ok = waiting.empty() &&
+                    (!(hull_near || hull_changed) ||
+                     HullWindsOnceFrom(mesh, cur_, &hull_hint_));
+    if (ok) {
+      counts += c;
+      // Legalize around v and wherever fixing flipped.
+      stack.clear();
+      around.clear();
+      AppendStar(mesh, v, &around);
+      for (uint32_t e : log) {
+        around.push_back(TriangleOf(e));
+        around.push_back(TriangleOf(m.twin[e]));
+      }
+      for (uint32_t t : around) {
+        for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) stack.push_back(e);
+      }
+      LegalizeLoop<false>(m, p, Bounds{}, stack, deferred, &counts,
+                          tri_mark_.data(), &mesh);
+      if (goal == target) {
+        stats->flips += counts;
+        return true;
+      }
+      goal = target;
+      continue;
+    }
+    Undo(m, log, &mesh);
+    cur_[v] = old;
+    std::optional<Vec2> h;
+    if (halvings < policy.max_halvings) h = Halfway(old, goal);
+    if (!h) {
+      stats->flips += counts;
+      return false;
+    }
+    ++halvings;
+    ++stats->halvings;
+    goal = *h;
+  }
+}
+
+bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
+                          const std::vector<Vec2>& to,
+                          const std::vector<uint32_t>& moved,
+                          const RegionStepPolicy& policy,
+                          RegionStepStats* stats,
+                          std::vector<uint32_t>* removed,
+                          std::vector<uint32_t>* hints, std::string* reason) {
+  auto t0 = std::chrono::steady_clock::now();
+  from_ = &from;
+  to_ = &to;
+  const uint32_t n = static_cast<uint32_t>(to.size());
+  const uint32_t nt = mesh.num_triangles();
+  const uint32_t rt = std::max<uint32_t>(policy.region_triangles, 1);
+  const size_t num_regions = (size_t{nt} + rt - 1) / rt;
+  regions_.resize(num_regions);
+  for (Region& g : regions_) {
+    g.invalid.clear();
+    g.illegal.clear();
+  }
+  cur_ = to;
+  held_.assign(n, 0);
+  held_list_.clear();
+  tri_mark_.assign(nt, 0);
+  RegionStepPolicy pol = policy;
+  pol.region_triangles = rt;
+  const MeshView m = mesh.view();
+
+  // 1. Scan: invalid triangles and illegal edges for `to`.
+  const bool dense = moved.size() > policy.sparse_fraction * n;
+  if (dense) {
+    const Vec2* p = cur_.data();
+    tbb::parallel_for(
+        tbb::blocked_range<size_t>(0, num_regions, 1),
+        [&](const tbb::blocked_range<size_t>& range) {
+          for (size_t r = range.begin(); r != range.end(); ++r) {
+            Region& g = regions_[r];
+            const uint32_t lo = static_cast<uint32_t>(r * rt);
+            const uint32_t hi =
+                static_cast<uint32_t>(std::min<size_t>(nt, (r + 1) * size_t{rt}));
+            for (uint32_t t = lo; t < hi; ++t) {
+              if (m.IsFree(t)) continue;
+              if (!rules::TriangleOk(m, p, t)) g.invalid.push_back(t);
+              for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
+                if (e < m.twin[e] && rules::IsIllegal(m, p, e)) {
+                  g.illegal.push_back(e);
+                }
+              }
+            }
+          }
+        });
+  } else {
+    std::vector<uint32_t> around;
+    for (uint32_t v : moved) AppendStarAndHullRing(mesh, v, &around);
+    std::sort(around.begin(), around.end());
+    around.erase(std::unique(around.begin(), around.end()), around.end());
+    for (uint32_t t : around) {
+      tri_mark_[t] = 1;  // every edge is re-tested by legalizing
+      if (!rules::TriangleOk(m, cur_.data(), t)) {
+        regions_[t / rt].invalid.push_back(t);
+      }
+    }
+  }
+  // 2. Hold back the culprits of triangles no flip can repair.
+  {
+    std::vector<uint32_t> all_invalid;
+    for (const Region& g : regions_) {
+      all_invalid.insert(all_invalid.end(), g.invalid.begin(),
+                         g.invalid.end());
+    }
+    std::vector<uint8_t> hopeless(all_invalid.size(), 0);
+    const Vec2* p = cur_.data();
+    ParallelFor(0, all_invalid.size(), [&](size_t i) {
+      hopeless[i] =
+          rules::ProposeFixFlip(m, p, all_invalid[i]).edge == kNoEdge;
+    }, 256);
+    std::vector<uint32_t> queue;
+    for (size_t i = 0; i < all_invalid.size(); ++i) {
+      if (hopeless[i]) queue.push_back(all_invalid[i]);
+    }
+    HoldCulprits(mesh, std::move(queue));
+    std::vector<uint32_t> around;
+    for (uint32_t v : held_list_) AppendStarAndHullRing(mesh, v, &around);
+    std::sort(around.begin(), around.end());
+    around.erase(std::unique(around.begin(), around.end()), around.end());
+    for (uint32_t t : around) {
+      tri_mark_[t] = 1;
+      regions_[t / rt].invalid.push_back(t);
+    }
+  }
+  stats->scan_seconds += SecondsSince(t0);
+  t0 = std::chrono::steady_clock::now();
+
+  // 3. Fix.
+  if (!DenseFix(mesh, moved, pol, stats, reason)) {
+    stats->fix_seconds += SecondsSince(t0);
+    return false;
+  }
+  stats->fix_seconds += SecondsSince(t0);
+  t0 = std::chrono::steady_clock::now();
+
+  // 4. Legalize: the illegal edges of the scan plus every edge of a triangle
+  //    that changed (flips, held vertices, sparse motion).
+  {
+    const Vec2* p = cur_.data();
+    tbb::parallel_for(
+        tbb::blocked_range<size_t>(0, num_regions, 1),
+        [&](const tbb::blocked_range<size_t>& range) {
+          for (size_t r = range.begin(); r != range.end(); ++r) {
+            Region& g = regions_[r];
+            g.ClearWork();
+            const uint32_t lo = static_cast<uint32_t>(r * rt);
+            const uint32_t hi =
+                static_cast<uint32_t>(std::min<size_t>(nt, (r + 1) * size_t{rt}));
+            g.stack.assign(g.illegal.rbegin(), g.illegal.rend());
+            for (uint32_t t = hi; t-- > lo;) {
+              if (!tri_mark_[t]) continue;
+              for (uint32_t e = 3 * t + 3; e-- > 3 * t;) g.stack.push_back(e);
+            }
+            LegalizeLoop<true>(m, p, Bounds{lo, hi}, g.stack, g.deferred,
+                               &g.counts, tri_mark_.data(), nullptr);
+          }
+        });
+    Region serial;
+    for (Region& g : regions_) {
+      serial.stack.insert(serial.stack.end(), g.deferred.rbegin(),
+                          g.deferred.rend());
+      stats->deferred += static_cast<uint32_t>(g.deferred.size());
+      stats->flips += g.counts;
+    }
+    LegalizeLoop<false>(m, p, Bounds{}, serial.stack, serial.deferred,
+                        &serial.counts, tri_mark_.data(), nullptr);
+    stats->flips += serial.counts;
+    ++stats->flips.legalize_rounds;
+  }
+  // vertex_edge of every vertex of a changed triangle: the smallest of its
+  // half-edges in changed triangles (deterministic; every vertex of a
+  // flipped quad keeps a half-edge in a flipped triangle).
+  {
+    uint32_t* ve = mesh.mutable_vertex_edge().data();
+    ParallelFor(0, nt, [&](size_t t) {
+      if (!tri_mark_[t]) return;
+      for (size_t e = 3 * t; e < 3 * t + 3; ++e) {
+        const uint32_t v = m.origin[e];
+        if (v < n) std::atomic_ref<uint32_t>(ve[v]).store(
+            kNoEdge, std::memory_order_relaxed);
+      }
+    });
+    ParallelFor(0, nt, [&](size_t t) {
+      if (!tri_mark_[t]) return;
+      for (size_t e = 3 * t; e < 3 * t + 3; ++e) {
+        const uint32_t v = m.origin[e];
+        if (v < n) AtomicMin(&ve[v], static_cast<uint32_t>(e));
+      }
+    });
+  }
+  stats->legalize_seconds += SecondsSince(t0);
+  t0 = std::chrono::steady_clock::now();
+
+  // 5. Held vertices move alone; the ones that cannot are removed.
+  stats->held = static_cast<uint32_t>(held_list_.size());
+  for (uint32_t v : held_list_) {
+    if (MoveHeld(mesh, v, to[v], pol, stats)) continue;
+    const uint32_t e = mesh.vertex_edge()[v];
+    (*hints)[v] = mesh.view().Dest(e);
+    std::vector<uint32_t> touched;
+    if (!VertexOps::Remove(mesh, cur_, v, &touched, nullptr)) {
+      *reason = "could not remove a vertex for re-insertion";
+      stats->held_seconds += SecondsSince(t0);
+      return false;
+    }
+    LegalizeSerial(mesh, cur_, touched, &stats->flips);
+    removed->push_back(v);
+  }
+  stats->held_seconds += SecondsSince(t0);
+  return true;
+}
+
+bool RegionExecutor::FixSerial(Mesh& mesh, const std::vector<Vec2>& pos,
+                               const std::vector<uint32_t>& invalid,
+                               FlipCounts* counts,
+                               std::vector<uint32_t>* touched,
+                               std::vector<uint32_t>* log,
+                               std::vector<uint32_t>* stuck) {
+  const MeshView m = mesh.view();
+  std::vector<uint32_t> stack(invalid.rbegin(), invalid.rend());
+  std::vector<uint32_t> waiting, deferred, own_log;
+  FlipCounts c;
+  std::vector<uint32_t>* lg = log ? log : &own_log;
+  const size_t log_begin = lg->size();
+  FixLoop<false>(m, pos.data(), Bounds{}, stack, waiting, deferred, lg, &c,
+                 nullptr, &mesh);
+  if (counts) *counts += c;
+  if (touched) {
+    for (size_t i = log_begin; i < lg->size(); ++i) {
+      touched->push_back(TriangleOf((*lg)[i]));
+      touched->push_back(TriangleOf(m.twin[(*lg)[i]]));
+    }
+  }
+  if (!waiting.empty()) {
+    if (stuck) stuck->insert(stuck->end(), waiting.begin(), waiting.end());
+    return false;
+  }
+  uint32_t hint = 0;
+  return HullWindsOnceFrom(mesh, pos, &hint);
+}
+
+void RegionExecutor::LegalizeSerial(Mesh& mesh, const std::vector<Vec2>& pos,
+                                    const std::vector<uint32_t>& seeds,
+                                    FlipCounts* counts) {
+  const MeshView m = mesh.view();
+  std::vector<uint32_t> stack, deferred;
+  stack.reserve(3 * seeds.size());
+  for (auto it = seeds.rbegin(); it != seeds.rend(); ++it) {
+    for (uint32_t e = 3 * *it + 3; e-- > 3 * *it;) stack.push_back(e);
+  }
+  FlipCounts c;
+  LegalizeLoop<false>(m, pos.data(), Bounds{}, stack, deferred, &c, nullptr,
+                      &mesh);
+  if (counts) *counts += c;
+}
+
+}  // namespace kinetri::core

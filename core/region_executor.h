@@ -1,0 +1,130 @@
+// CPU executor of the kinetic update, shaped for the CPU: per-region stacks.
+//
+// The triangle slots, kept in spatial (Hilbert) order, are cut into regions
+// of a fixed number of triangles (an option, never the thread count, so the
+// result is the same for 1 and N threads). Each region repairs and then
+// legalizes its own triangles with a LIFO stack, one thread per region, no
+// atomics: an element is processed in its region only when everything the
+// per-element rule reads or the flip writes lies in that region (reads are
+// checked before they happen, so a region never reads a slot another region
+// may be writing). Anything that crosses a boundary is deferred to one short
+// serial pass. The per-element rules (core/flip_rules.h), the flip
+// (core/mesh.h) and the vertex operations (core/vertex_ops.h) are the same as
+// the round executor's (core/kinetic.h); only the scheduling differs.
+//
+// A step (Step below), for a mesh that is Delaunay for `from`:
+//   1. one fused dense scan (or a scan around the moved vertices for sparse
+//      motion) finds the invalid triangles and the illegal edges for `to`;
+//   2. hold-back: an invalid triangle that no flip can repair right after
+//      the move has its culprit vertex (one whose old position makes the
+//      triangle valid again) held at its old position;
+//   3. fix by regions, then the serial pass; a hull that winds twice or a
+//      triangle still stuck undoes the flips, holds the stuck triangles'
+//      moving vertices too and repeats (rare);
+//   4. legalize by regions, then the serial pass;
+//   5. every held vertex moves alone: fix + legalize around it; if that gets
+//      stuck, its motion is bisected (up to max_halvings times); if that
+//      fails too it is removed and returned to the caller for re-insertion.
+#ifndef KINETRI_CORE_REGION_EXECUTOR_H_
+#define KINETRI_CORE_REGION_EXECUTOR_H_
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "core/kinetic.h"
+#include "core/mesh.h"
+#include "core/vec2.h"
+
+namespace kinetri::core {
+
+// Every knob of a region step (owned by the step policy in
+// TriangulationOptions).
+struct RegionStepPolicy {
+  uint32_t region_triangles = 8192;  // triangles per region
+  int max_halvings = 8;       // bisections of a held vertex's own motion
+  int max_passes = 8;         // dense fixing attempts before giving up
+  // Moved vertices below this fraction of all vertices: the scan looks only
+  // around them (sparse step); above it, one dense scan of every triangle.
+  double sparse_fraction = 0.25;
+};
+
+// What a region step did (added to the caller's StepReport).
+struct RegionStepStats {
+  FlipCounts flips;
+  uint32_t held = 0;             // vertices held back and moved alone
+  uint32_t halvings = 0;         // bisections of held vertices' motion
+  uint32_t fix_attempts = 0;     // dense fixing attempts (1 = no repeat)
+  uint32_t deferred = 0;         // elements left to the serial pass
+  double scan_seconds = 0.0;
+  double fix_seconds = 0.0;
+  double legalize_seconds = 0.0;
+  double held_seconds = 0.0;
+};
+
+class RegionExecutor {
+ public:
+  // Moves the vertices in `moved` (finite mesh vertices, ascending) from
+  // their positions in `from` to those in `to` (both indexed by vertex;
+  // entries of other vertices are equal in both). The mesh must be the
+  // Delaunay triangulation of `from`. On success it is the Delaunay
+  // triangulation of `to` over all vertices except `removed`: vertices taken
+  // out because their motion could not be repaired locally, each with a
+  // neighbour in `hints` (indexed by vertex) to start locating it. Returns
+  // false (with `reason`) when the step should be rebuilt instead; the mesh
+  // is then valid for some mix of positions only.
+  bool Step(Mesh& mesh, const std::vector<Vec2>& from,
+            const std::vector<Vec2>& to, const std::vector<uint32_t>& moved,
+            const RegionStepPolicy& policy, RegionStepStats* stats,
+            std::vector<uint32_t>* removed, std::vector<uint32_t>* hints,
+            std::string* reason);
+
+  // Serial stack versions of the fixing and legalizing loops (same contract
+  // as KineticExecutor::Fix / Legalize, hull check included), for small
+  // local changes such as vertex insertion.
+  static bool FixSerial(Mesh& mesh, const std::vector<Vec2>& pos,
+                        const std::vector<uint32_t>& invalid,
+                        FlipCounts* counts, std::vector<uint32_t>* touched,
+                        std::vector<uint32_t>* log,
+                        std::vector<uint32_t>* stuck);
+  static void LegalizeSerial(Mesh& mesh, const std::vector<Vec2>& pos,
+                             const std::vector<uint32_t>& seed_triangles,
+                             FlipCounts* counts);
+
+ private:
+  struct Region {
+    std::vector<uint32_t> invalid;   // triangles to repair (scan + holds)
+    std::vector<uint32_t> illegal;   // canonical half-edges found illegal
+    std::vector<uint32_t> stack;
+    std::vector<uint32_t> waiting;   // invalid, no repairing flip yet
+    std::vector<uint32_t> deferred;  // crosses the region boundary
+    std::vector<uint32_t> log;       // flipped edges, in order
+    FlipCounts counts;
+    void ClearWork();
+  };
+  bool DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
+                const RegionStepPolicy& policy, RegionStepStats* stats,
+                std::string* reason);
+  void HoldCulprits(const Mesh& mesh, std::vector<uint32_t> suspects);
+  void Hold(uint32_t v);
+  bool MoveHeld(Mesh& mesh, uint32_t v, const Vec2& target,
+                const RegionStepPolicy& policy, RegionStepStats* stats);
+
+  const std::vector<Vec2>* from_ = nullptr;
+  const std::vector<Vec2>* to_ = nullptr;
+  std::vector<Vec2> cur_;         // positions the mesh is repaired for
+  std::vector<uint8_t> held_;     // per vertex
+  std::vector<uint32_t> held_list_;
+  std::vector<uint8_t> tri_mark_; // per triangle: changed by a region flip
+  std::vector<Region> regions_;
+  uint32_t hull_hint_ = 0;        // a ghost triangle, remembered
+};
+
+// Does the hull polygon wind exactly once? Walks the hull from a remembered
+// ghost triangle (updated), scanning the mesh only if it is no longer one.
+bool HullWindsOnceFrom(const Mesh& mesh, const std::vector<Vec2>& pos,
+                       uint32_t* ghost_hint);
+
+}  // namespace kinetri::core
+
+#endif  // KINETRI_CORE_REGION_EXECUTOR_H_
