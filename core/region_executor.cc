@@ -8,6 +8,8 @@
 #include <atomic>
 #include <chrono>
 #include <optional>
+#include <cstdio>
+#include <cstdlib>
 
 #include "absl/strings/str_cat.h"
 #include "core/flip_rules.h"
@@ -166,10 +168,9 @@ void LegalizeLoop(const MeshView& m, const Vec2* p, Bounds b,
   }
 }
 
-// Triangles around vertex v (vertex_edge valid), appended to out.
-void AppendStar(const Mesh& mesh, uint32_t v, std::vector<uint32_t>* out) {
-  const MeshView m = mesh.view();
-  const uint32_t e0 = mesh.vertex_edge()[v];
+// Triangles around the origin of half-edge e0, appended to out.
+void AppendStarFrom(const MeshView& m, uint32_t e0,
+                    std::vector<uint32_t>* out) {
   if (e0 == kNoEdge) return;
   uint32_t e = e0;
   do {
@@ -178,13 +179,12 @@ void AppendStar(const Mesh& mesh, uint32_t v, std::vector<uint32_t>* out) {
   } while (e != e0);
 }
 
-// The star of v plus, for its ghost triangles, their neighbours (the hull
-// turns at v's hull neighbours depend on v too).
-void AppendStarAndHullRing(const Mesh& mesh, uint32_t v,
-                           std::vector<uint32_t>* out) {
+// The star of the origin of e0 plus, for its ghost triangles, their
+// neighbours (the hull turns at its hull neighbours depend on it too).
+void AppendStarAndHullRingFrom(const MeshView& m, uint32_t e0,
+                               std::vector<uint32_t>* out) {
   const size_t begin = out->size();
-  AppendStar(mesh, v, out);
-  const MeshView m = mesh.view();
+  AppendStarFrom(m, e0, out);
   const size_t end = out->size();
   for (size_t i = begin; i < end; ++i) {
     const uint32_t t = (*out)[i];
@@ -193,6 +193,15 @@ void AppendStarAndHullRing(const Mesh& mesh, uint32_t v,
       out->push_back(TriangleOf(m.twin[e]));
     }
   }
+}
+
+// The same from vertex_edge (which must be valid for v).
+void AppendStar(const Mesh& mesh, uint32_t v, std::vector<uint32_t>* out) {
+  AppendStarFrom(mesh.view(), mesh.vertex_edge()[v], out);
+}
+void AppendStarAndHullRing(const Mesh& mesh, uint32_t v,
+                           std::vector<uint32_t>* out) {
+  AppendStarAndHullRingFrom(mesh.view(), mesh.vertex_edge()[v], out);
 }
 
 inline void AtomicMin(uint32_t* slot, uint32_t value) {
@@ -257,9 +266,10 @@ bool HullWindsOnceFrom(const Mesh& mesh, const std::vector<Vec2>& pos,
   return steps >= 3 && tops == 1;
 }
 
-void RegionExecutor::Hold(uint32_t v) {
+void RegionExecutor::Hold(uint32_t v, uint32_t edge) {
   held_[v] = 1;
   held_list_.push_back(v);
+  held_edge_.push_back(edge);
   cur_[v] = (*from_)[v];
 }
 
@@ -272,23 +282,26 @@ void RegionExecutor::HoldCulprits(const Mesh& mesh,
     const uint32_t t = queue[i];
     if (rules::TriangleOk(m, p, t)) continue;
     if (rules::ProposeFixFlip(m, p, t).edge != kNoEdge) continue;
-    // The vertices TriangleOk(t) reads.
-    uint32_t cand[3];
+    // The vertices TriangleOk(t) reads, each with a half-edge leaving it
+    // (vertex_edge may be stale while fixing).
+    uint32_t cand[3], edge[3];
     if (m.IsGhost(t)) {
       const uint32_t s = rules::SpokeOf(m, t);
       if (s == kNoEdge) continue;
-      cand[0] = rules::SpokePrev(m, s);
-      cand[1] = m.origin[s];
-      cand[2] = rules::SpokeNext(m, s);
+      edge[0] = Prev(m.twin[s]);
+      edge[1] = s;
+      edge[2] = Prev(s);
     } else {
-      for (int k = 0; k < 3; ++k) cand[k] = m.origin[3 * t + k];
+      for (int k = 0; k < 3; ++k) edge[k] = 3 * t + k;
     }
+    for (int k = 0; k < 3; ++k) cand[k] = m.origin[edge[k]];
     // Culprit: the moving vertex whose old position alone makes t valid
     // (the one that moved farthest if several do); else all moving ones.
-    uint32_t best = kNoVertex;
+    int best = -1;
     double best_d = -1.0;
     bool any_moving = false;
-    for (uint32_t u : cand) {
+    for (int k = 0; k < 3; ++k) {
+      const uint32_t u = cand[k];
       if (u >= held_.size() || held_[u] || cur_[u] == (*from_)[u]) continue;
       any_moving = true;
       const Vec2 saved = cur_[u];
@@ -297,26 +310,18 @@ void RegionExecutor::HoldCulprits(const Mesh& mesh,
       cur_[u] = saved;
       const double d = Dist2(saved, (*from_)[u]);
       if (ok && d > best_d) {
-        best = u;
+        best = k;
         best_d = d;
       }
     }
     if (!any_moving) continue;
-    std::vector<uint32_t> culprits;
-    if (best != kNoVertex) {
-      culprits.push_back(best);
-    } else {
-      for (uint32_t u : cand) {
-        if (u < held_.size() && !held_[u] && cur_[u] != (*from_)[u]) {
-          culprits.push_back(u);
-        }
-      }
-    }
-    for (uint32_t u : culprits) {
-      if (held_[u]) continue;
-      Hold(u);
+    for (int k = 0; k < 3; ++k) {
+      const uint32_t u = cand[k];
+      if (best >= 0 && k != best) continue;
+      if (u >= held_.size() || held_[u] || cur_[u] == (*from_)[u]) continue;
+      Hold(u, edge[k]);
       around.clear();
-      AppendStarAndHullRing(mesh, u, &around);
+      AppendStarAndHullRingFrom(m, edge[k], &around);
       for (uint32_t x : around) {
         if (!rules::TriangleOk(m, p, x)) queue.push_back(x);
       }
@@ -364,7 +369,38 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
     FixLoop<false>(m, p, Bounds{}, serial.stack, serial.waiting,
                    serial.deferred, &serial.log, &serial.counts,
                    tri_mark_.data(), nullptr);
+    // Stuck triangles: hold their culprits where the mesh is now and go on
+    // fixing around them (serially; they are few).
+    for (int local = 0; !serial.waiting.empty() && local < 16; ++local) {
+      const size_t before = held_list_.size();
+      HoldCulprits(mesh, serial.waiting);
+      if (held_list_.size() == before) {
+        for (uint32_t t : serial.waiting) {
+          for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
+            const uint32_t v = m.origin[e];
+            if (v < held_.size() && !held_[v] && cur_[v] != (*from_)[v]) {
+              Hold(v, e);
+            }
+          }
+        }
+      }
+      if (held_list_.size() == before) break;
+      serial.stack.swap(serial.waiting);
+      serial.waiting.clear();
+      for (size_t i = before; i < held_list_.size(); ++i) {
+        around.clear();
+        AppendStarAndHullRingFrom(m, held_edge_[i], &around);
+        for (uint32_t t : around) {
+          serial.stack.push_back(t);
+          tri_mark_[t] = 1;
+        }
+      }
+      FixLoop<false>(m, p, Bounds{}, serial.stack, serial.waiting,
+                     serial.deferred, &serial.log, &serial.counts,
+                     tri_mark_.data(), nullptr);
+    }
     const bool stuck = !serial.waiting.empty();
+    if (getenv("KT")) fprintf(stderr, "attempt %d: serial stack done, stuck %zu, log %zu\n", attempt, serial.waiting.size(), serial.log.size());
     if (!stuck && HullWindsOnceFrom(mesh, cur_, &hull_hint_)) {
       for (const Region& g : regions_) stats->flips += g.counts;
       stats->flips += serial.counts;
@@ -392,11 +428,32 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
     for (auto it = regions_.rbegin(); it != regions_.rend(); ++it) {
       Undo(m, it->log, nullptr);
     }
+    // Hold the culprits; if they are all held already, their moving
+    // neighbours too (in the restored mesh, where vertex_edge is valid).
     bool held_any = false;
-    for (uint32_t v : culprits) {
-      if (v >= held_.size() || held_[v] || cur_[v] == (*from_)[v]) continue;
-      Hold(v);
-      held_any = true;
+    for (int widen = 0; widen < 2 && !held_any; ++widen) {
+      if (widen == 1) {
+        std::vector<uint32_t> ring;
+        for (uint32_t v : culprits) {
+          if (v >= held_.size()) continue;
+          around.clear();
+          AppendStar(mesh, v, &around);
+          for (uint32_t t : around) {
+            for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
+              ring.push_back(m.origin[e]);
+            }
+          }
+        }
+        culprits = std::move(ring);
+      }
+      for (uint32_t v : culprits) {
+        if (v >= held_.size() || held_[v] || cur_[v] == (*from_)[v]) continue;
+        Hold(v, mesh.vertex_edge()[v]);
+        held_any = true;
+      }
+    }
+    // Every held vertex's star is repaired afresh (the undo moved some).
+    for (uint32_t v : held_list_) {
       around.clear();
       AppendStarAndHullRing(mesh, v, &around);
       for (uint32_t t : around) {
@@ -502,6 +559,7 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
   cur_ = to;
   held_.assign(n, 0);
   held_list_.clear();
+  held_edge_.clear();
   tri_mark_.assign(nt, 0);
   RegionStepPolicy pol = policy;
   pol.region_triangles = rt;
@@ -542,6 +600,7 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
       }
     }
   }
+  if (getenv("KT")) fprintf(stderr, "scan %.4f\n", SecondsSince(t0));
   // 2. Hold back the culprits of triangles no flip can repair.
   {
     std::vector<uint32_t> all_invalid;
@@ -559,7 +618,9 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
     for (size_t i = 0; i < all_invalid.size(); ++i) {
       if (hopeless[i]) queue.push_back(all_invalid[i]);
     }
+    if (getenv("KT")) fprintf(stderr, "hopeless %.4f (%zu)\n", SecondsSince(t0), queue.size());
     HoldCulprits(mesh, std::move(queue));
+    if (getenv("KT")) fprintf(stderr, "culprits %.4f\n", SecondsSince(t0));
     std::vector<uint32_t> around;
     for (uint32_t v : held_list_) AppendStarAndHullRing(mesh, v, &around);
     std::sort(around.begin(), around.end());
@@ -614,6 +675,7 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
     stats->flips += serial.counts;
     ++stats->flips.legalize_rounds;
   }
+  if (getenv("KT")) fprintf(stderr, "legal %.4f\n", SecondsSince(t0));
   // vertex_edge of every vertex of a changed triangle: the smallest of its
   // half-edges in changed triangles (deterministic; every vertex of a
   // flipped quad keeps a half-edge in a flipped triangle).

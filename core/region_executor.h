@@ -106,7 +106,8 @@ class RegionExecutor {
                 const RegionStepPolicy& policy, RegionStepStats* stats,
                 std::string* reason);
   void HoldCulprits(const Mesh& mesh, std::vector<uint32_t> suspects);
-  void Hold(uint32_t v);
+  // Holds v at its old position; `edge` leaves v (for its star).
+  void Hold(uint32_t v, uint32_t edge);
   bool MoveHeld(Mesh& mesh, uint32_t v, const Vec2& target,
                 const RegionStepPolicy& policy, RegionStepStats* stats);
 
@@ -115,6 +116,7 @@ class RegionExecutor {
   std::vector<Vec2> cur_;         // positions the mesh is repaired for
   std::vector<uint8_t> held_;     // per vertex
   std::vector<uint32_t> held_list_;
+  std::vector<uint32_t> held_edge_;  // a half-edge leaving each, when held
   std::vector<uint8_t> tri_mark_; // per triangle: changed by a region flip
   std::vector<Region> regions_;
   uint32_t hull_hint_ = 0;        // a ghost triangle, remembered
