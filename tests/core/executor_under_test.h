@@ -8,6 +8,12 @@
 
 namespace kinetri::testing {
 
+#ifdef KINETRI_TEST_ROUNDS
+inline constexpr bool kRegionExecutor = false;
+#else
+inline constexpr bool kRegionExecutor = true;
+#endif
+
 inline core::TriangulationOptions ExecutorOptions() {
   core::TriangulationOptions o;
 #ifdef KINETRI_TEST_ROUNDS

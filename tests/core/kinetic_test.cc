@@ -363,6 +363,138 @@ TEST(Kinetic, BadInputIsRejectedAndChangesNothing) {
   expect_unchanged();
 }
 
+// Regression (issue 13): two points that move onto the same empty position in
+// one step made re-insertion fail and forced a full rebuild; either move
+// alone was local.
+TEST(Kinetic, RegressionTwoPointsMeetAtAnEmptyPosition) {
+  const std::vector<Vec2> pts = {{-1, 1}, {4, 0}, {1, 1}, {2, 2}, {2, 1},
+                                 {1, 2},  {2, 3}, {3, 3}, {1, 4}, {2, 5}};
+  auto t = Triangulation::Create(pts, testing::ExecutorOptions());
+  ASSERT_TRUE(t.ok());
+  std::vector<Vec2> d(pts.size(), Vec2{0, 0});
+  d[6] = {0, 1};
+  d[8] = {1, 0};
+  auto r = t->ApplyDisplacements(DisplacementBatch::Dense(d));
+  ASSERT_TRUE(r.ok()) << r.status();
+  // The round executor still rebuilds here (exactly); the region executor
+  // moves the two points alone and merges them into one site.
+  if (testing::kRegionExecutor) {
+    EXPECT_NE(r->path, UpdatePath::kRebuilt) << r->fallback_reason;
+  }
+  EXPECT_TRUE(t->Validate().ok()) << t->Validate();
+  EXPECT_EQ(testing::EdgesAsPositions(*t),
+            testing::CgalDelaunayEdges(t->Positions()));
+  EXPECT_EQ(t->num_sites(), pts.size() - 1);
+  EXPECT_EQ(t->Position(6), t->Position(8));
+}
+
+// Close pairs: a point next to a neighbour jumps past it (crosses the edges
+// around the neighbour and overshoots the triangle beyond), the case that
+// leaves inverted triangles no flip can repair.
+TEST(Kinetic, ClosePairsOvershoot) {
+  const size_t n = 3000;
+  std::vector<Vec2> pts = testing::UniformPoints(n, 201);
+  std::mt19937_64 rng(202);
+  // Pairs (2i, 2i+1): put 2i+1 close to 2i.
+  for (size_t i = 0; i + 1 < n; i += 20) {
+    pts[i + 1] = {pts[i].x + 0.002 * std::cos(double(i)),
+                  pts[i].y + 0.002 * std::sin(double(i))};
+  }
+  auto t = Triangulation::Create(pts, testing::ExecutorOptions());
+  ASSERT_TRUE(t.ok());
+  std::vector<Vec2> d(n, Vec2{0, 0});
+  std::normal_distribution<double> g(0, 0.1 / std::sqrt(double(n)));
+  for (size_t i = 0; i < n; ++i) d[i] = {g(rng), g(rng)};
+  for (size_t i = 0; i + 1 < n; i += 20) {
+    // 1.6 times its distance to the partner, through it.
+    d[i + 1] = {1.6 * (pts[i].x - pts[i + 1].x),
+                1.6 * (pts[i].y - pts[i + 1].y)};
+  }
+  const PathTally tally = RunSequence(*t, 1, [&](int) {
+    return DisplacementBatch::Dense(d);
+  });
+  if (testing::kRegionExecutor) EXPECT_EQ(tally.rebuilt, 0) << tally.reasons;
+}
+
+// Hull points jump across their hull neighbours' edges and back.
+TEST(Kinetic, HullCrossings) {
+  const size_t n = 400;
+  std::vector<Vec2> pts;
+  for (size_t i = 0; i < n; ++i) {
+    const double a = 2 * M_PI * double(i) / double(n);
+    pts.push_back({std::cos(a), std::sin(a)});  // all on the hull
+  }
+  const auto inner = testing::UniformPoints(600, 211, 1.0, -0.5);
+  pts.insert(pts.end(), inner.begin(), inner.end());
+  auto t = Triangulation::Create(pts, testing::ExecutorOptions());
+  ASSERT_TRUE(t.ok());
+  const size_t m = pts.size();
+  RunSequence(*t, 6, [&](int s) {
+    std::vector<Vec2> d(m, Vec2{0, 0});
+    for (size_t i = 0; i < n; ++i) {
+      const double a = 2 * M_PI * double(i) / double(n);
+      // Alternate points move in and out by more than the hull sagitta.
+      const double r = ((i + s) % 2 ? 0.02 : -0.02) * (s % 3 + 1);
+      d[i] = {r * std::cos(a), r * std::sin(a)};
+    }
+    return DisplacementBatch::Dense(d);
+  });
+}
+
+// Held vertices that collide: many points jump exactly onto other points'
+// new positions (some of which are held too) and onto each other's.
+TEST(Kinetic, HeldVerticesCollide) {
+  const size_t n = 2000;
+  auto pts = testing::UniformPoints(n, 221);
+  auto t = Triangulation::Create(pts, testing::ExecutorOptions());
+  ASSERT_TRUE(t.ok());
+  std::mt19937_64 rng(222);
+  RunSequence(*t, 4, [&](int) {
+    std::vector<Vec2> next = t->Positions();
+    std::normal_distribution<double> g(0, 0.2 / std::sqrt(double(n)));
+    for (auto& p : next) p = {p.x + g(rng), p.y + g(rng)};
+    for (int k = 0; k < 40; ++k) {  // pairs meet at a fresh position
+      const uint32_t a = rng() % n, b = rng() % n;
+      next[b] = next[a];
+    }
+    return DisplacementBatch::Absolute(next);
+  });
+}
+
+// Both executors, any region size, any thread count: the same triangulation.
+TEST(Kinetic, ExecutorsAndRegionSizesAgree) {
+  const size_t n = 5000;
+  const auto pts = testing::ClusteredPoints(n, 231);
+  std::vector<TriangulationOptions> configs(5);
+  configs[0].executor = Executor::kRounds;
+  configs[1].region.region_triangles = 16;
+  configs[2].region.region_triangles = 256;
+  configs[2].num_threads = 1;
+  configs[3].region.region_triangles = 4096;
+  configs[4].region.max_halvings = 0;  // every held vertex is re-inserted
+  std::vector<Triangulation> tris;
+  for (const auto& c : configs) {
+    auto t = Triangulation::Create(pts, c);
+    ASSERT_TRUE(t.ok());
+    tris.push_back(std::move(*t));
+  }
+  std::mt19937_64 rng(232);
+  for (int s = 0; s < 6; ++s) {
+    std::normal_distribution<double> g(0, 0.3 / std::sqrt(double(n)));
+    std::vector<Vec2> d(n);
+    for (auto& v : d) v = {g(rng), g(rng)};
+    for (auto& t : tris) {
+      auto r = t.ApplyDisplacements(DisplacementBatch::Dense(d));
+      ASSERT_TRUE(r.ok()) << r.status();
+    }
+    const auto expected = tris[0].Edges();
+    for (size_t i = 1; i < tris.size(); ++i) {
+      EXPECT_EQ(tris[i].Edges(), expected) << "config " << i << " step " << s;
+      EXPECT_TRUE(tris[i].Validate().ok()) << tris[i].Validate();
+    }
+  }
+}
+
 }  // namespace
 }  // namespace kinetri::core
 

@@ -4,6 +4,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <cstdlib>
 #include <random>
 
 #include "core/triangulation.h"
@@ -24,6 +25,10 @@ void RunScenario(uint64_t seed) {
                   : testing::WithDuplicates(n / 2, 2, seed);
   n = pts.size();
   TriangulationOptions opt = testing::ExecutorOptions();
+  // Region executor: region sizes from a few triangles (almost everything
+  // goes through the serial pass) to one region.
+  const uint32_t region_sizes[] = {16, 64, 256, 1u << 20};
+  opt.region.region_triangles = region_sizes[rng() % 4];
   if (rng() % 2) {  // exercise the local machinery on large steps too
     opt.rebuild_fraction = 1.0;
     opt.max_passes = 64;
@@ -88,7 +93,10 @@ void RunScenario(uint64_t seed) {
 }
 
 TEST(Randomized, MixedScenariosStayExact) {
-  for (uint64_t seed = 1; seed <= 60; ++seed) {
+  // KINETRI_RANDOMIZED_SEEDS runs more seeds locally (CI runs 60).
+  const char* env = std::getenv("KINETRI_RANDOMIZED_SEEDS");
+  const uint64_t seeds = env ? std::strtoull(env, nullptr, 10) : 60;
+  for (uint64_t seed = 1; seed <= seeds; ++seed) {
     SCOPED_TRACE(seed);
     RunScenario(seed);
     if (HasFatalFailure()) return;
