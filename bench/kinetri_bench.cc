@@ -57,7 +57,9 @@ ABSL_FLAG(double, engine_budget_s, 0,
 ABSL_FLAG(int, query_points, 100000, "arbitrary query points per step");
 ABSL_FLAG(std::string, engines, "",
           "comma-separated engines to run (default: all of kinetri, "
-          "kinetri-1t, cgal-rebuild, cgal-move, grid, nanoflann)");
+          "kinetri-1t, kinetri-rounds, cgal-rebuild, cgal-move, grid, "
+          "nanoflann; kinetri-rounds is the round executor on all threads, "
+          "update and all-NN only)");
 
 namespace {
 
@@ -267,8 +269,10 @@ int main(int argc, char** argv) {
                                          : (quick ? 3.0 : 90.0));
   const size_t num_queries =
       static_cast<size_t>(std::max(0, absl::GetFlag(FLAGS_query_points)));
-  std::set<std::string> engines = {"kinetri",   "kinetri-1t", "cgal-rebuild",
-                                   "cgal-move", "grid",       "nanoflann"};
+  std::set<std::string> engines = {"kinetri",        "kinetri-1t",
+                                   "kinetri-rounds", "cgal-rebuild",
+                                   "cgal-move",      "grid",
+                                   "nanoflann"};
   if (!absl::GetFlag(FLAGS_engines).empty()) {
     std::set<std::string> want;
     for (auto e : absl::StrSplit(absl::GetFlag(FLAGS_engines), ',')) {
@@ -347,7 +351,7 @@ int main(int argc, char** argv) {
       auto on = [&](const std::string& e) {
         return engines.count(e) && !failed[e] && !stopped[e];
       };
-      std::unique_ptr<kc::Triangulation> tri, tri1;
+      std::unique_ptr<kc::Triangulation> tri, tri1, tri_rounds;
       {
         auto t = kc::Triangulation::Create(w.start);
         tri = std::make_unique<kc::Triangulation>(*std::move(t));
@@ -356,6 +360,12 @@ int main(int argc, char** argv) {
           one.num_threads = 1;
           auto t1 = kc::Triangulation::Create(w.start, one);
           tri1 = std::make_unique<kc::Triangulation>(*std::move(t1));
+        }
+        if (engines.count("kinetri-rounds")) {
+          kc::TriangulationOptions rounds;
+          rounds.executor = kc::Executor::kRounds;
+          auto tr = kc::Triangulation::Create(w.start, rounds);
+          tri_rounds = std::make_unique<kc::Triangulation>(*std::move(tr));
         }
       }
       std::unique_ptr<CgalDt> moving;  // CGAL move(): handles by point id
@@ -393,8 +403,10 @@ int main(int argc, char** argv) {
           spent[e] += ms;
         };
         // Kinetri (all threads; 1 thread for update + NN).
-        for (auto* t : {tri.get(), tri1.get()}) {
-          const std::string e = t == tri.get() ? "kinetri" : "kinetri-1t";
+        for (auto* t : {tri.get(), tri1.get(), tri_rounds.get()}) {
+          const std::string e = t == tri.get()    ? "kinetri"
+                                : t == tri1.get() ? "kinetri-1t"
+                                                  : "kinetri-rounds";
           if (t == nullptr || !on(e)) continue;
           auto t0 = Clock::now();
           auto rep = t->ApplyDisplacements(kc::DisplacementBatch::Dense(d));

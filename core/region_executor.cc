@@ -8,8 +8,6 @@
 #include <atomic>
 #include <chrono>
 #include <optional>
-#include <cstdio>
-#include <cstdlib>
 
 #include "absl/strings/str_cat.h"
 #include "core/flip_rules.h"
@@ -400,7 +398,6 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
                      tri_mark_.data(), nullptr);
     }
     const bool stuck = !serial.waiting.empty();
-    if (getenv("KT")) fprintf(stderr, "attempt %d: serial stack done, stuck %zu, log %zu\n", attempt, serial.waiting.size(), serial.log.size());
     if (!stuck && HullWindsOnceFrom(mesh, cur_, &hull_hint_)) {
       for (const Region& g : regions_) stats->flips += g.counts;
       stats->flips += serial.counts;
@@ -600,7 +597,6 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
       }
     }
   }
-  if (getenv("KT")) fprintf(stderr, "scan %.4f\n", SecondsSince(t0));
   // 2. Hold back the culprits of triangles no flip can repair.
   {
     std::vector<uint32_t> all_invalid;
@@ -618,9 +614,18 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
     for (size_t i = 0; i < all_invalid.size(); ++i) {
       if (hopeless[i]) queue.push_back(all_invalid[i]);
     }
-    if (getenv("KT")) fprintf(stderr, "hopeless %.4f (%zu)\n", SecondsSince(t0), queue.size());
+    const double local_cost = policy.held_vertex_cost * double(queue.size());
+    const double rebuild_cost =
+        policy.rebuild_fixed_cost + policy.rebuild_point_cost * double(n);
+    if (policy.held_vertex_cost > 0 && local_cost > rebuild_cost) {
+      *reason = absl::StrCat(
+          queue.size(), " triangles cannot be repaired by flips (",
+          static_cast<int>(100.0 * queue.size() / std::max(1u, nt)),
+          "% of all): rebuilding is cheaper");
+      stats->scan_seconds += SecondsSince(t0);
+      return false;
+    }
     HoldCulprits(mesh, std::move(queue));
-    if (getenv("KT")) fprintf(stderr, "culprits %.4f\n", SecondsSince(t0));
     std::vector<uint32_t> around;
     for (uint32_t v : held_list_) AppendStarAndHullRing(mesh, v, &around);
     std::sort(around.begin(), around.end());
@@ -675,7 +680,6 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
     stats->flips += serial.counts;
     ++stats->flips.legalize_rounds;
   }
-  if (getenv("KT")) fprintf(stderr, "legal %.4f\n", SecondsSince(t0));
   // vertex_edge of every vertex of a changed triangle: the smallest of its
   // half-edges in changed triangles (deterministic; every vertex of a
   // flipped quad keeps a half-edge in a flipped triangle).

@@ -47,6 +47,16 @@ struct RegionStepPolicy {
   // Moved vertices below this fraction of all vertices: the scan looks only
   // around them (sparse step); above it, one dense scan of every triangle.
   double sparse_fraction = 0.25;
+  // Cost model for "rebuild instead" (microseconds, measured on the 2-core
+  // reference machine at 1M points, see docs/BENCHMARKS.md): each triangle
+  // that no flip can repair after the move costs about this much in
+  // hold-back, moving alone and bisection; a rebuild costs about
+  // rebuild_fixed_cost plus rebuild_point_cost per point. The step is
+  // rebuilt when the first exceeds the second. held_vertex_cost = 0: never
+  // rebuild by cost.
+  double held_vertex_cost = 8.0;
+  double rebuild_point_cost = 1.5;
+  double rebuild_fixed_cost = 200.0;
 };
 
 // What a region step did (added to the caller's StepReport).

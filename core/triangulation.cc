@@ -138,10 +138,14 @@ absl::StatusOr<Triangulation> Triangulation::Create(
   const RegionStepPolicy& rp = options.region;
   if (rp.region_triangles < 16 || rp.max_halvings < 0 ||
       rp.max_halvings > 60 || rp.max_passes < 1 || rp.max_passes > 1024 ||
-      !(rp.sparse_fraction >= 0.0 && rp.sparse_fraction <= 1.0)) {
+      !(rp.sparse_fraction >= 0.0 && rp.sparse_fraction <= 1.0) ||
+      !(rp.held_vertex_cost >= 0.0 && rp.held_vertex_cost < 1e9) ||
+      !(rp.rebuild_point_cost >= 0.0 && rp.rebuild_point_cost < 1e9) ||
+      !(rp.rebuild_fixed_cost >= 0.0 && rp.rebuild_fixed_cost < 1e12)) {
     return absl::InvalidArgumentError(
         "region policy: region_triangles must be >= 16, max_halvings in "
-        "[0, 60], max_passes in [1, 1024], sparse_fraction in [0, 1]");
+        "[0, 60], max_passes in [1, 1024], sparse_fraction in [0, 1], "
+        "costs finite and >= 0");
   }
   if (options.max_subdivision_depth < 0 || options.max_subdivision_depth > 16) {
     return absl::InvalidArgumentError(

@@ -32,6 +32,7 @@ void RunScenario(uint64_t seed) {
   if (rng() % 2) {  // exercise the local machinery on large steps too
     opt.rebuild_fraction = 1.0;
     opt.max_passes = 64;
+    opt.region.held_vertex_cost = 0.0;
   }
   auto t = Triangulation::Create(pts, opt);
   ASSERT_TRUE(t.ok());
