@@ -1,4 +1,4 @@
-// CPU executor: data-parallel loops on oneTBB's work-stealing scheduler.
+// CPU executors: data-parallel loops on oneTBB's work-stealing scheduler.
 //
 // Why TBB rather than a hand-rolled std::thread pool: it is a Debian package
 // with a CMake config, balances uneven loops (flip worklists shrink from
@@ -31,19 +31,6 @@ void ParallelFor(size_t begin, size_t end, Fn&& fn, size_t grain = 2048) {
                     [&](const tbb::blocked_range<size_t>& r) {
                       for (size_t i = r.begin(); i != r.end(); ++i) fn(i);
                     });
-}
-
-// Calls fn(lo, hi) on disjoint chunks covering [begin, end).
-template <typename Fn>
-void ParallelChunks(size_t begin, size_t end, Fn&& fn, size_t grain = 2048) {
-  if (end <= begin) return;
-  if (end - begin <= grain) {
-    fn(begin, end);
-    return;
-  }
-  tbb::parallel_for(
-      tbb::blocked_range<size_t>(begin, end, grain),
-      [&](const tbb::blocked_range<size_t>& r) { fn(r.begin(), r.end()); });
 }
 
 // Indices i in [0, n) with pred(i), ascending. Fixed-size blocks make the

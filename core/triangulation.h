@@ -14,15 +14,21 @@
 //  * Fewer than three sites, or all sites collinear, is the "line" mode: the
 //    Delaunay graph is then the path through the sites in (x, y) order.
 //
-// An update moves the points and repairs the mesh locally (fixing +
-// legalizing, core/kinetic.h). When fixing gets stuck the step is split for
-// the stuck vertices: they are held back, then their motion is halved, and
-// they finish it in further sparse passes (optionally the whole step is split
-// too, max_subdivision_depth). A vertex stuck more than max_halvings times
-// is removed and re-inserted at its new position (core/vertex_ops.h). CGAL
-// rebuilds the mesh when more than rebuild_fraction of the triangles invert,
-// when re-insertion would exceed 1/8 of the sites, or when max_passes run
-// out. StepReport tells which path was taken.
+// An update moves the points and repairs the mesh locally with one of two
+// CPU executors (TriangulationOptions::executor):
+//  * the region executor (default, core/region_executor.h): one dense scan,
+//    per-region stacks of fixing and legalizing flips, culprit vertices of
+//    triangles no flip can repair held back and then moved alone (bisection
+//    of their own motion, re-insertion as the last resort, core/vertex_ops.h);
+//    a measured cost model rebuilds with CGAL when that is cheaper;
+//  * the round executor (core/kinetic.h): global parallel rounds; when fixing
+//    gets stuck the stuck vertices are held back, then their motion is
+//    halved, and they finish it in further sparse passes (optionally the
+//    whole step is split too, max_subdivision_depth); a vertex stuck more
+//    than max_halvings times is removed and re-inserted. CGAL rebuilds the
+//    mesh when more than rebuild_fraction of the triangles invert, when
+//    re-insertion would exceed 1/8 of the sites, or when max_passes run out.
+// StepReport tells which path was taken.
 #ifndef KINETRI_CORE_TRIANGULATION_H_
 #define KINETRI_CORE_TRIANGULATION_H_
 
@@ -57,8 +63,8 @@ enum class Executor {
 struct TriangulationOptions {
   int num_threads = 0;  // 0: all cores
   Executor executor = Executor::kRegions;
-  // Knobs of the region executor (the fields below the next one are the
-  // round executor's).
+  // Knobs of the region executor. The fields below are the round
+  // executor's (num_threads and the renumbering ones apply to both).
   RegionStepPolicy region;
   // Whole-step splitting: a step whose fixing gets stuck is split into at
   // most 2^depth sub-steps for all points. 0 (default) leaves splitting to

@@ -1,0 +1,236 @@
+// Unit tests beneath every executor: the mesh and its flip, the per-element
+// rules (core/flip_rules.h), vertex removal and insertion
+// (core/vertex_ops.h) and the serial stack loops of the region executor,
+// each against CGAL's triangulation of the same points.
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <numeric>
+#include <utility>
+#include <vector>
+
+#include "core/cgal_builder.h"
+#include "core/flip_rules.h"
+#include "core/kinetic.h"
+#include "core/mesh.h"
+#include "core/region_executor.h"
+#include "core/vertex_ops.h"
+#include "tests/core/test_util.h"
+
+namespace kinetri::core {
+namespace {
+
+using EdgeSet = std::vector<std::pair<uint32_t, uint32_t>>;
+
+EdgeSet FiniteEdges(const Mesh& mesh) {
+  EdgeSet out;
+  const MeshView m = mesh.view();
+  for (uint32_t e = 0; e < mesh.num_half_edges(); ++e) {
+    const uint32_t a = m.origin[e];
+    if (a == kNoVertex) continue;
+    const uint32_t b = m.Dest(e);
+    if (a == kInfiniteVertex || b == kInfiniteVertex || e > m.twin[e]) continue;
+    out.emplace_back(std::min(a, b), std::max(a, b));
+  }
+  std::sort(out.begin(), out.end());
+  return out;
+}
+
+std::vector<uint32_t> AllSites(size_t n) {
+  std::vector<uint32_t> s(n);
+  std::iota(s.begin(), s.end(), 0u);
+  return s;
+}
+
+// Twins are involutions with reversed endpoints; vertex_edge leaves its
+// vertex.
+void ExpectConsistent(const Mesh& mesh) {
+  const MeshView m = mesh.view();
+  for (uint32_t e = 0; e < mesh.num_half_edges(); ++e) {
+    if (m.origin[e] == kNoVertex) continue;
+    ASSERT_EQ(m.twin[m.twin[e]], e);
+    ASSERT_EQ(m.origin[m.twin[e]], m.Dest(e));
+  }
+  for (uint32_t v = 0; v < mesh.num_vertices(); ++v) {
+    const uint32_t e = mesh.vertex_edge()[v];
+    if (e != kNoEdge) {
+      ASSERT_EQ(m.origin[e], v);
+    }
+  }
+}
+
+uint32_t InteriorEdge(const Mesh& mesh) {
+  const MeshView m = mesh.view();
+  for (uint32_t e = 0; e < mesh.num_half_edges(); ++e) {
+    if (!m.IsGhost(TriangleOf(e)) && !m.IsGhost(TriangleOf(m.twin[e]))) {
+      return e;
+    }
+  }
+  return kNoEdge;
+}
+
+TEST(Mesh, FourFlipsAreTheIdentityAndKeepTwins) {
+  const auto pts = testing::UniformPoints(200, 1);
+  Mesh mesh = BuildDelaunayWithCgal(pts, AllSites(pts.size()));
+  const std::vector<uint32_t> origin = mesh.origin(), twin = mesh.twin();
+  const uint32_t e = InteriorEdge(mesh);
+  ASSERT_NE(e, kNoEdge);
+  const MeshView m = mesh.view();
+  const uint32_t c = m.Apex(e), d = m.Across(e);
+  m.Flip(e);
+  mesh.UpdateVertexEdgesAfterFlip(e);
+  // The flipped slot now joins the two apexes (d -> c, see mesh.h).
+  EXPECT_EQ(m.origin[e], d);
+  EXPECT_EQ(m.Dest(e), c);
+  ExpectConsistent(mesh);
+  for (int k = 0; k < 3; ++k) m.Flip(e);
+  EXPECT_EQ(mesh.origin(), origin);
+  EXPECT_EQ(mesh.twin(), twin);
+}
+
+TEST(Mesh, CompactFillsFreedSlots) {
+  const auto pts = testing::UniformPoints(300, 2);
+  Mesh mesh = BuildDelaunayWithCgal(pts, AllSites(pts.size()));
+  std::vector<uint32_t> touched;
+  ASSERT_TRUE(VertexOps::Remove(mesh, pts, 17, &touched, nullptr));
+  EXPECT_TRUE(mesh.has_free_triangles());
+  const uint32_t before = mesh.num_triangles();
+  mesh.Compact();
+  EXPECT_FALSE(mesh.has_free_triangles());
+  EXPECT_EQ(mesh.num_triangles(), before - 2);
+  ExpectConsistent(mesh);
+}
+
+TEST(FlipRules, OrientationAndHullTurns) {
+  const std::vector<Vec2> pts = {{0, 0}, {4, 0}, {1, 3}, {3, 3}, {2, 1}};
+  Mesh mesh = BuildDelaunayWithCgal(pts, AllSites(pts.size()));
+  const MeshView m = mesh.view();
+  for (uint32_t t = 0; t < mesh.num_triangles(); ++t) {
+    EXPECT_TRUE(rules::TriangleOk(m, pts.data(), t)) << t;
+  }
+  // Vertex 4 jumps below the hull edge 0-1: a finite triangle inverts and
+  // the ghost triangle of that hull edge has a repair (hull absorption) or
+  // the inverted triangle an interior flip.
+  std::vector<Vec2> moved = pts;
+  moved[4] = {2, -1};
+  int invalid = 0, proposals = 0;
+  for (uint32_t t = 0; t < mesh.num_triangles(); ++t) {
+    if (rules::TriangleOk(m, moved.data(), t)) continue;
+    ++invalid;
+    if (rules::ProposeFixFlip(m, moved.data(), t).edge != kNoEdge) {
+      ++proposals;
+    }
+  }
+  EXPECT_GT(invalid, 0);
+  EXPECT_GT(proposals, 0);
+  std::vector<uint32_t> bad;
+  for (uint32_t t = 0; t < mesh.num_triangles(); ++t) {
+    if (!rules::TriangleOk(m, moved.data(), t)) bad.push_back(t);
+  }
+  ASSERT_TRUE(RegionExecutor::FixSerial(mesh, moved, bad, nullptr, nullptr,
+                                        nullptr, nullptr));
+  std::vector<uint32_t> all(mesh.num_triangles());
+  std::iota(all.begin(), all.end(), 0u);
+  RegionExecutor::LegalizeSerial(mesh, moved, all, nullptr);
+  EXPECT_EQ(FiniteEdges(mesh),
+            FiniteEdges(BuildDelaunayWithCgal(moved, AllSites(moved.size()))));
+  ExpectConsistent(mesh);
+}
+
+TEST(FlipRules, IllegalEdgeIsTheOneInsideTheCircle) {
+  // Quad a, b with apexes c (above) and d (below): d inside the circle of
+  // (a, b, c) makes the shared edge illegal; after the flip it is legal.
+  const auto pts = testing::UniformPoints(400, 3);
+  Mesh mesh = BuildDelaunayWithCgal(pts, AllSites(pts.size()));
+  const MeshView m = mesh.view();
+  const uint32_t e = InteriorEdge(mesh);
+  ASSERT_FALSE(rules::IsIllegal(m, pts.data(), e));
+  m.Flip(e);  // the other diagonal of a Delaunay quad is illegal
+  EXPECT_TRUE(rules::IsIllegal(m, pts.data(), e));
+  m.Flip(e);
+  m.Flip(e);
+  m.Flip(e);
+  EXPECT_FALSE(rules::IsIllegal(m, pts.data(), e));
+}
+
+TEST(FlipRules, NonConvexQuadHasNoInteriorFlip) {
+  // Triangle (0,1,2) with 2 pushed through edge 0-1 so far that the quad
+  // with the triangle across is not convex: no flip can repair it.
+  const std::vector<Vec2> pts = {{0, 0}, {4, 0}, {2, 1}, {2, -1},
+                                 {-3, 3}, {7, 3}, {2, -6}, {2, 6}};
+  Mesh mesh = BuildDelaunayWithCgal(pts, AllSites(pts.size()));
+  const MeshView m = mesh.view();
+  std::vector<Vec2> moved = pts;
+  moved[2] = {2, -5};  // far past vertex 3
+  int stuck = 0;
+  for (uint32_t t = 0; t < mesh.num_triangles(); ++t) {
+    if (rules::TriangleOk(m, moved.data(), t)) continue;
+    if (rules::ProposeFixFlip(m, moved.data(), t).edge == kNoEdge) ++stuck;
+  }
+  EXPECT_GT(stuck, 0);
+}
+
+class VertexOpsTest : public ::testing::TestWithParam<int> {};
+
+TEST_P(VertexOpsTest, RemoveAndInsertMatchCgal) {
+  const auto pts = GetParam() == 0 ? testing::UniformPoints(500, 4)
+                                   : testing::ClusteredPoints(500, 5);
+  Mesh mesh = BuildDelaunayWithCgal(pts, AllSites(pts.size()));
+  uint32_t hint_ghost = 0;
+  ASSERT_TRUE(HullWindsOnceFrom(mesh, pts, &hint_ghost));
+  // Remove interior and hull vertices, legalize, compare with CGAL.
+  std::vector<uint32_t> removed;
+  for (uint32_t v = 0; v < pts.size(); v += 37) removed.push_back(v);
+  const MeshView m = mesh.view();
+  for (uint32_t t = 0; t < mesh.num_triangles() && removed.size() < 20; ++t) {
+    if (m.IsGhost(t)) {  // a hull vertex too
+      const uint32_t s = rules::SpokeOf(m, t);
+      if (std::find(removed.begin(), removed.end(), m.origin[s]) ==
+          removed.end()) {
+        removed.push_back(m.origin[s]);
+      }
+    }
+  }
+  for (uint32_t v : removed) {
+    std::vector<uint32_t> touched;
+    ASSERT_TRUE(VertexOps::Remove(mesh, pts, v, &touched, nullptr)) << v;
+    RegionExecutor::LegalizeSerial(mesh, pts, touched, nullptr);
+  }
+  std::vector<uint32_t> kept;
+  for (uint32_t v = 0; v < pts.size(); ++v) {
+    if (std::find(removed.begin(), removed.end(), v) == removed.end()) {
+      kept.push_back(v);
+    }
+  }
+  EXPECT_EQ(FiniteEdges(mesh), FiniteEdges(BuildDelaunayWithCgal(pts, kept)));
+  ExpectConsistent(mesh);
+  // Insert them again: locate, split, fix, legalize.
+  for (uint32_t v : removed) {
+    uint32_t start = 0;
+    while (mesh.view().IsFree(start)) ++start;
+    const auto loc = VertexOps::Locate(mesh, pts, pts[v], start);
+    ASSERT_NE(loc.triangle, kNoEdge);
+    ASSERT_EQ(loc.coincident, kNoVertex);
+    const auto tris = VertexOps::Split(mesh, loc.triangle, v);
+    std::vector<uint32_t> touched(tris.begin(), tris.end());
+    const std::vector<uint32_t> just = {v};
+    const std::vector<uint32_t> bad =
+        KineticExecutor::FindInvalidTriangles(mesh, pts, &just);
+    ASSERT_TRUE(RegionExecutor::FixSerial(mesh, pts, bad, nullptr, &touched,
+                                          nullptr, nullptr));
+    for (uint32_t t : KineticExecutor::TrianglesAround(mesh, {v})) {
+      touched.push_back(t);
+    }
+    RegionExecutor::LegalizeSerial(mesh, pts, touched, nullptr);
+  }
+  EXPECT_EQ(FiniteEdges(mesh),
+            FiniteEdges(BuildDelaunayWithCgal(pts, AllSites(pts.size()))));
+  ExpectConsistent(mesh);
+  EXPECT_TRUE(HullWindsOnceFrom(mesh, pts, &hint_ghost));
+}
+
+INSTANTIATE_TEST_SUITE_P(UniformAndClustered, VertexOpsTest,
+                         ::testing::Values(0, 1));
+
+}  // namespace
+}  // namespace kinetri::core
