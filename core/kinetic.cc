@@ -8,6 +8,7 @@
 #include <numeric>
 
 #include "core/flip_rules.h"
+#include "core/hull.h"
 #include "core/parallel.h"
 
 namespace kinetri::core {
@@ -343,32 +344,8 @@ void KineticExecutor::Legalize(Mesh& mesh, const std::vector<Vec2>& pos,
 
 bool KineticExecutor::HullWindsOnce(const Mesh& mesh,
                                     const std::vector<Vec2>& pos) {
-  const MeshView m = mesh.view();
-  // Find one ghost triangle (parallel search, first by index).
-  const std::vector<uint32_t> ghosts =
-      Filter(mesh.num_triangles(),
-             [&](size_t t) { return m.IsGhost(static_cast<uint32_t>(t)); });
-  if (ghosts.size() < 3) return false;
-  // Walk the hull: from ghost g with spoke a->inf, the next ghost is across
-  // the half-edge inf->q, i.e. across Next(spoke).
-  auto above = [&](uint32_t u, uint32_t v) {  // (y, x) lexicographic u > v
-    const Vec2 &a = pos[u], &b = pos[v];
-    return a.y > b.y || (a.y == b.y && a.x > b.x);
-  };
-  const uint32_t g0 = ghosts[0];
-  uint32_t g = g0;
-  size_t steps = 0, tops = 0;
-  do {
-    const uint32_t s = rules::SpokeOf(m, g);
-    if (s == kNoEdge) return false;
-    const uint32_t a = m.origin[s];
-    const uint32_t pv = rules::SpokePrev(m, s), nx = rules::SpokeNext(m, s);
-    if (pv == kInfiniteVertex || nx == kInfiniteVertex) return false;
-    if (above(a, pv) && above(a, nx)) ++tops;
-    g = TriangleOf(m.twin[Next(s)]);
-    if (++steps > ghosts.size()) return false;
-  } while (g != g0);
-  return steps == ghosts.size() && tops == 1;
+  uint32_t ghost = 0;
+  return HullWindsOnceFrom(mesh, pos, &ghost);
 }
 
 }  // namespace kinetri::core

@@ -134,9 +134,8 @@ void FixLoop(const MeshView& m, const Vec2* p, Bounds b,
 // own triangle lies in b).
 template <bool kBounded>
 void LegalizeLoop(const MeshView& m, const Vec2* p, Bounds b,
-                  std::vector<uint32_t>& stack,
-                  std::vector<uint32_t>& deferred, FlipCounts* counts,
-                  uint8_t* mark, Mesh* mesh) {
+                  std::vector<uint32_t>& stack, std::vector<uint32_t>& deferred,
+                  FlipCounts* counts, uint8_t* mark, Mesh* mesh) {
   while (!stack.empty()) {
     const uint32_t e = stack.back();
     stack.pop_back();
@@ -147,11 +146,10 @@ void LegalizeLoop(const MeshView& m, const Vec2* p, Bounds b,
       continue;
     }
     if (!rules::IsIllegal(m, p, e)) continue;
-    if (kBounded &&
-        !(b.In(TriangleOf(m.twin[Next(e)])) &&
-          b.In(TriangleOf(m.twin[Prev(e)])) &&
-          b.In(TriangleOf(m.twin[Next(f)])) &&
-          b.In(TriangleOf(m.twin[Prev(f)])))) {
+    if (kBounded && !(b.In(TriangleOf(m.twin[Next(e)])) &&
+                      b.In(TriangleOf(m.twin[Prev(e)])) &&
+                      b.In(TriangleOf(m.twin[Next(f)])) &&
+                      b.In(TriangleOf(m.twin[Prev(f)])))) {
       deferred.push_back(e);
       continue;
     }
@@ -234,36 +232,6 @@ double Dist2(const Vec2& a, const Vec2& b) {
 
 }  // namespace
 
-bool HullWindsOnceFrom(const Mesh& mesh, const std::vector<Vec2>& pos,
-                       uint32_t* ghost_hint) {
-  const MeshView m = mesh.view();
-  const uint32_t nt = mesh.num_triangles();
-  uint32_t g0 = *ghost_hint;
-  if (g0 >= nt || m.IsFree(g0) || !m.IsGhost(g0)) {
-    g0 = 0;
-    while (g0 < nt && (m.IsFree(g0) || !m.IsGhost(g0))) ++g0;
-    if (g0 == nt) return false;
-    *ghost_hint = g0;
-  }
-  auto above = [&](uint32_t u, uint32_t v) {  // (y, x) lexicographic u > v
-    const Vec2 &a = pos[u], &b = pos[v];
-    return a.y > b.y || (a.y == b.y && a.x > b.x);
-  };
-  uint32_t g = g0;
-  size_t steps = 0, tops = 0;
-  do {
-    const uint32_t s = rules::SpokeOf(m, g);
-    if (s == kNoEdge) return false;
-    const uint32_t a = m.origin[s];
-    const uint32_t pv = rules::SpokePrev(m, s), nx = rules::SpokeNext(m, s);
-    if (pv == kInfiniteVertex || nx == kInfiniteVertex) return false;
-    if (above(a, pv) && above(a, nx)) ++tops;
-    g = TriangleOf(m.twin[Next(s)]);
-    if (++steps > nt) return false;
-  } while (g != g0);
-  return steps >= 3 && tops == 1;
-}
-
 void RegionExecutor::Hold(uint32_t v, uint32_t edge) {
   held_[v] = 1;
   held_list_.push_back(v);
@@ -340,21 +308,21 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
     ++stats->fix_attempts;
     const Vec2* p = cur_.data();
     // Fix every region in parallel; nothing crosses a region boundary.
-    tbb::parallel_for(
-        tbb::blocked_range<size_t>(0, regions_.size(), 1),
-        [&](const tbb::blocked_range<size_t>& range) {
-          for (size_t r = range.begin(); r != range.end(); ++r) {
-            Region& g = regions_[r];
-            g.ClearWork();
-            if (g.invalid.empty()) continue;
-            g.stack.assign(g.invalid.rbegin(), g.invalid.rend());
-            const Bounds b{static_cast<uint32_t>(r * rt),
-                           static_cast<uint32_t>(
-                               std::min<size_t>(nt, (r + 1) * size_t{rt}))};
-            FixLoop<true>(m, p, b, g.stack, g.waiting, g.deferred, &g.log,
-                          &g.counts, tri_mark_.data(), nullptr);
-          }
-        });
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, regions_.size(), 1),
+                      [&](const tbb::blocked_range<size_t>& range) {
+                        for (size_t r = range.begin(); r != range.end(); ++r) {
+                          Region& g = regions_[r];
+                          g.ClearWork();
+                          if (g.invalid.empty()) continue;
+                          g.stack.assign(g.invalid.rbegin(), g.invalid.rend());
+                          const Bounds b{static_cast<uint32_t>(r * rt),
+                                         static_cast<uint32_t>(std::min<size_t>(
+                                             nt, (r + 1) * size_t{rt}))};
+                          FixLoop<true>(m, p, b, g.stack, g.waiting, g.deferred,
+                                        &g.log, &g.counts, tri_mark_.data(),
+                                        nullptr);
+                        }
+                      });
     // The serial pass: boundary elements and region-stuck triangles.
     serial.ClearWork();
     for (Region& g : regions_) {
@@ -495,9 +463,9 @@ bool RegionExecutor::MoveHeld(Mesh& mesh, uint32_t v, const Vec2& target,
     FixLoop<false>(m, p, Bounds{}, stack, waiting, deferred, &log, &c,
                    tri_mark_.data(), &mesh);
     const bool hull_changed = c.hull_absorb + c.hull_release > 0;
-    const bool ok = waiting.empty() &&
-                    (!(hull_near || hull_changed) ||
-                     HullWindsOnceFrom(mesh, cur_, &hull_hint_));
+    const bool ok =
+        waiting.empty() && (!(hull_near || hull_changed) ||
+                            HullWindsOnceFrom(mesh, cur_, &hull_hint_));
     if (ok) {
       counts += c;
       // Legalize around v and wherever fixing flipped.
@@ -566,25 +534,25 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
   const bool dense = moved.size() > policy.sparse_fraction * n;
   if (dense) {
     const Vec2* p = cur_.data();
-    tbb::parallel_for(
-        tbb::blocked_range<size_t>(0, num_regions, 1),
-        [&](const tbb::blocked_range<size_t>& range) {
-          for (size_t r = range.begin(); r != range.end(); ++r) {
-            Region& g = regions_[r];
-            const uint32_t lo = static_cast<uint32_t>(r * rt);
-            const uint32_t hi =
-                static_cast<uint32_t>(std::min<size_t>(nt, (r + 1) * size_t{rt}));
-            for (uint32_t t = lo; t < hi; ++t) {
-              if (m.IsFree(t)) continue;
-              if (!rules::TriangleOk(m, p, t)) g.invalid.push_back(t);
-              for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
-                if (e < m.twin[e] && rules::IsIllegal(m, p, e)) {
-                  g.illegal.push_back(e);
-                }
-              }
-            }
-          }
-        });
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, num_regions, 1),
+                      [&](const tbb::blocked_range<size_t>& range) {
+                        for (size_t r = range.begin(); r != range.end(); ++r) {
+                          Region& g = regions_[r];
+                          const uint32_t lo = static_cast<uint32_t>(r * rt);
+                          const uint32_t hi = static_cast<uint32_t>(
+                              std::min<size_t>(nt, (r + 1) * size_t{rt}));
+                          for (uint32_t t = lo; t < hi; ++t) {
+                            if (m.IsFree(t)) continue;
+                            if (!rules::TriangleOk(m, p, t))
+                              g.invalid.push_back(t);
+                            for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
+                              if (e < m.twin[e] && rules::IsIllegal(m, p, e)) {
+                                g.illegal.push_back(e);
+                              }
+                            }
+                          }
+                        }
+                      });
   } else {
     std::vector<uint32_t> around;
     for (uint32_t v : moved) AppendStarAndHullRing(mesh, v, &around);
@@ -601,15 +569,17 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
   {
     std::vector<uint32_t> all_invalid;
     for (const Region& g : regions_) {
-      all_invalid.insert(all_invalid.end(), g.invalid.begin(),
-                         g.invalid.end());
+      all_invalid.insert(all_invalid.end(), g.invalid.begin(), g.invalid.end());
     }
     std::vector<uint8_t> hopeless(all_invalid.size(), 0);
     const Vec2* p = cur_.data();
-    ParallelFor(0, all_invalid.size(), [&](size_t i) {
-      hopeless[i] =
-          rules::ProposeFixFlip(m, p, all_invalid[i]).edge == kNoEdge;
-    }, 256);
+    ParallelFor(
+        0, all_invalid.size(),
+        [&](size_t i) {
+          hopeless[i] =
+              rules::ProposeFixFlip(m, p, all_invalid[i]).edge == kNoEdge;
+        },
+        256);
     std::vector<uint32_t> queue;
     for (size_t i = 0; i < all_invalid.size(); ++i) {
       if (hopeless[i]) queue.push_back(all_invalid[i]);
@@ -650,24 +620,25 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
   //    that changed (flips, held vertices, sparse motion).
   {
     const Vec2* p = cur_.data();
-    tbb::parallel_for(
-        tbb::blocked_range<size_t>(0, num_regions, 1),
-        [&](const tbb::blocked_range<size_t>& range) {
-          for (size_t r = range.begin(); r != range.end(); ++r) {
-            Region& g = regions_[r];
-            g.ClearWork();
-            const uint32_t lo = static_cast<uint32_t>(r * rt);
-            const uint32_t hi =
-                static_cast<uint32_t>(std::min<size_t>(nt, (r + 1) * size_t{rt}));
-            g.stack.assign(g.illegal.rbegin(), g.illegal.rend());
-            for (uint32_t t = hi; t-- > lo;) {
-              if (!tri_mark_[t]) continue;
-              for (uint32_t e = 3 * t + 3; e-- > 3 * t;) g.stack.push_back(e);
-            }
-            LegalizeLoop<true>(m, p, Bounds{lo, hi}, g.stack, g.deferred,
-                               &g.counts, tri_mark_.data(), nullptr);
-          }
-        });
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, num_regions, 1),
+                      [&](const tbb::blocked_range<size_t>& range) {
+                        for (size_t r = range.begin(); r != range.end(); ++r) {
+                          Region& g = regions_[r];
+                          g.ClearWork();
+                          const uint32_t lo = static_cast<uint32_t>(r * rt);
+                          const uint32_t hi = static_cast<uint32_t>(
+                              std::min<size_t>(nt, (r + 1) * size_t{rt}));
+                          g.stack.assign(g.illegal.rbegin(), g.illegal.rend());
+                          for (uint32_t t = hi; t-- > lo;) {
+                            if (!tri_mark_[t]) continue;
+                            for (uint32_t e = 3 * t + 3; e-- > 3 * t;)
+                              g.stack.push_back(e);
+                          }
+                          LegalizeLoop<true>(m, p, Bounds{lo, hi}, g.stack,
+                                             g.deferred, &g.counts,
+                                             tri_mark_.data(), nullptr);
+                        }
+                      });
     Region serial;
     for (Region& g : regions_) {
       serial.stack.insert(serial.stack.end(), g.deferred.rbegin(),
@@ -689,8 +660,9 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
       if (!tri_mark_[t]) return;
       for (size_t e = 3 * t; e < 3 * t + 3; ++e) {
         const uint32_t v = m.origin[e];
-        if (v < n) std::atomic_ref<uint32_t>(ve[v]).store(
-            kNoEdge, std::memory_order_relaxed);
+        if (v < n)
+          std::atomic_ref<uint32_t>(ve[v]).store(kNoEdge,
+                                                 std::memory_order_relaxed);
       }
     });
     ParallelFor(0, nt, [&](size_t t) {

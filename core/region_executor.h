@@ -32,6 +32,7 @@
 #include <string>
 #include <vector>
 
+#include "core/hull.h"
 #include "core/kinetic.h"
 #include "core/mesh.h"
 #include "core/vec2.h"
@@ -42,8 +43,8 @@ namespace kinetri::core {
 // TriangulationOptions).
 struct RegionStepPolicy {
   uint32_t region_triangles = 8192;  // triangles per region
-  int max_halvings = 8;       // bisections of a held vertex's own motion
-  int max_passes = 8;         // dense fixing attempts before giving up
+  int max_halvings = 8;              // bisections of a held vertex's own motion
+  int max_passes = 8;                // dense fixing attempts before giving up
   // Moved vertices below this fraction of all vertices: the scan looks only
   // around them (sparse step); above it, one dense scan of every triangle.
   double sparse_fraction = 0.25;
@@ -62,10 +63,10 @@ struct RegionStepPolicy {
 // What a region step did (added to the caller's StepReport).
 struct RegionStepStats {
   FlipCounts flips;
-  uint32_t held = 0;             // vertices held back and moved alone
-  uint32_t halvings = 0;         // bisections of held vertices' motion
-  uint32_t fix_attempts = 0;     // dense fixing attempts (1 = no repeat)
-  uint32_t deferred = 0;         // elements left to the serial pass
+  uint32_t held = 0;          // vertices held back and moved alone
+  uint32_t halvings = 0;      // bisections of held vertices' motion
+  uint32_t fix_attempts = 0;  // dense fixing attempts (1 = no repeat)
+  uint32_t deferred = 0;      // elements left to the serial pass
   double scan_seconds = 0.0;
   double fix_seconds = 0.0;
   double legalize_seconds = 0.0;
@@ -103,8 +104,8 @@ class RegionExecutor {
 
  private:
   struct Region {
-    std::vector<uint32_t> invalid;   // triangles to repair (scan + holds)
-    std::vector<uint32_t> illegal;   // canonical half-edges found illegal
+    std::vector<uint32_t> invalid;  // triangles to repair (scan + holds)
+    std::vector<uint32_t> illegal;  // canonical half-edges found illegal
     std::vector<uint32_t> stack;
     std::vector<uint32_t> waiting;   // invalid, no repairing flip yet
     std::vector<uint32_t> deferred;  // crosses the region boundary
@@ -123,19 +124,14 @@ class RegionExecutor {
 
   const std::vector<Vec2>* from_ = nullptr;
   const std::vector<Vec2>* to_ = nullptr;
-  std::vector<Vec2> cur_;         // positions the mesh is repaired for
-  std::vector<uint8_t> held_;     // per vertex
+  std::vector<Vec2> cur_;      // positions the mesh is repaired for
+  std::vector<uint8_t> held_;  // per vertex
   std::vector<uint32_t> held_list_;
   std::vector<uint32_t> held_edge_;  // a half-edge leaving each, when held
-  std::vector<uint8_t> tri_mark_; // per triangle: changed by a region flip
+  std::vector<uint8_t> tri_mark_;    // per triangle: changed by a region flip
   std::vector<Region> regions_;
-  uint32_t hull_hint_ = 0;        // a ghost triangle, remembered
+  uint32_t hull_hint_ = 0;  // a ghost triangle, remembered
 };
-
-// Does the hull polygon wind exactly once? Walks the hull from a remembered
-// ghost triangle (updated), scanning the mesh only if it is no longer one.
-bool HullWindsOnceFrom(const Mesh& mesh, const std::vector<Vec2>& pos,
-                       uint32_t* ghost_hint);
 
 }  // namespace kinetri::core
 

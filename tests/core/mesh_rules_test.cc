@@ -156,7 +156,7 @@ TEST(FlipRules, IllegalEdgeIsTheOneInsideTheCircle) {
 TEST(FlipRules, NonConvexQuadHasNoInteriorFlip) {
   // Triangle (0,1,2) with 2 pushed through edge 0-1 so far that the quad
   // with the triangle across is not convex: no flip can repair it.
-  const std::vector<Vec2> pts = {{0, 0}, {4, 0}, {2, 1}, {2, -1},
+  const std::vector<Vec2> pts = {{0, 0},  {4, 0}, {2, 1},  {2, -1},
                                  {-3, 3}, {7, 3}, {2, -6}, {2, 6}};
   Mesh mesh = BuildDelaunayWithCgal(pts, AllSites(pts.size()));
   const MeshView m = mesh.view();
