@@ -269,10 +269,9 @@ int main(int argc, char** argv) {
                                          : (quick ? 3.0 : 90.0));
   const size_t num_queries =
       static_cast<size_t>(std::max(0, absl::GetFlag(FLAGS_query_points)));
-  std::set<std::string> engines = {"kinetri",        "kinetri-1t",
-                                   "kinetri-rounds", "cgal-rebuild",
-                                   "cgal-move",      "grid",
-                                   "nanoflann"};
+  std::set<std::string> engines = {
+      "kinetri",   "kinetri-1t", "kinetri-rounds", "cgal-rebuild",
+      "cgal-move", "grid",       "nanoflann"};
   if (!absl::GetFlag(FLAGS_engines).empty()) {
     std::set<std::string> want;
     for (auto e : absl::StrSplit(absl::GetFlag(FLAGS_engines), ',')) {

@@ -13,8 +13,8 @@
 #include <cstdio>
 #include <nanoflann.hpp>
 #include <random>
-#include <thread>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "absl/flags/flag.h"
@@ -159,8 +159,8 @@ int main(int argc, char** argv) {
         "legalize %.3f s, held %.3f s, re-insert %.3f s%s%s) | CGAL rebuild "
         "%.4f s | ratio %.3f\n",
         s, up, kinetri::core::UpdatePathName(rep->path), rep->substeps,
-        rep->held_vertices, rep->local_halvings, rep->reinserted,
-        rep->deferred, (unsigned long long)rep->flips.interior_fix,
+        rep->held_vertices, rep->local_halvings, rep->reinserted, rep->deferred,
+        (unsigned long long)rep->flips.interior_fix,
         (unsigned long long)rep->flips.hull_absorb,
         (unsigned long long)rep->flips.hull_release,
         (unsigned long long)rep->flips.delaunay, rep->flips.legalize_rounds,

@@ -136,8 +136,8 @@ absl::StatusOr<Triangulation> Triangulation::Create(
         "max_halvings must be in [0, 30] and max_passes >= 1");
   }
   const RegionStepPolicy& rp = options.region;
-  if (rp.region_triangles < 16 || rp.max_halvings < 0 ||
-      rp.max_halvings > 60 || rp.max_passes < 1 || rp.max_passes > 1024 ||
+  if (rp.region_triangles < 16 || rp.max_halvings < 0 || rp.max_halvings > 60 ||
+      rp.max_passes < 1 || rp.max_passes > 1024 ||
       !(rp.sparse_fraction >= 0.0 && rp.sparse_fraction <= 1.0) ||
       !(rp.held_vertex_cost >= 0.0 && rp.held_vertex_cost < 1e9) ||
       !(rp.rebuild_point_cost >= 0.0 && rp.rebuild_point_cost < 1e9) ||
@@ -473,12 +473,11 @@ bool Triangulation::InsertBatch(std::vector<uint32_t> pending,
         KineticExecutor::FindInvalidTriangles(mesh_, pos_, &inserted);
     const bool regions = options_.executor == Executor::kRegions;
     const bool fixed =
-        regions ? RegionExecutor::FixSerial(mesh_, pos_, invalid,
-                                            &report->flips, &touched, nullptr,
-                                            nullptr)
-                : KineticExecutor::Fix(mesh_, pos_, std::move(invalid),
-                                       scratch_, &report->flips, &touched,
-                                       nullptr, nullptr);
+        regions
+            ? RegionExecutor::FixSerial(mesh_, pos_, invalid, &report->flips,
+                                        &touched, nullptr, nullptr)
+            : KineticExecutor::Fix(mesh_, pos_, std::move(invalid), scratch_,
+                                   &report->flips, &touched, nullptr, nullptr);
     if (!fixed) return false;
     std::vector<uint32_t> seeds =
         KineticExecutor::TrianglesAround(mesh_, inserted);
@@ -781,8 +780,7 @@ bool Triangulation::RegionUpdate(const std::vector<Vec2>& next,
   report->flips += stats.flips;
   report->held_vertices = stats.held;
   report->local_halvings = stats.halvings;
-  report->failed_attempts =
-      stats.fix_attempts > 0 ? stats.fix_attempts - 1 : 0;
+  report->failed_attempts = stats.fix_attempts > 0 ? stats.fix_attempts - 1 : 0;
   report->deferred = stats.deferred;
   report->substeps = stats.held > 0 ? 2 : 1;
   report->scan_seconds += stats.scan_seconds;

@@ -69,7 +69,8 @@ class BrownianTest : public ::testing::TestWithParam<double> {};
 TEST_P(BrownianTest, EveryStepIsExactDelaunay) {
   const size_t n = 2000;
   const double spacing = 1.0 / std::sqrt(double(n));
-  auto t = Triangulation::Create(testing::UniformPoints(n, 11), testing::ExecutorOptions());
+  auto t = Triangulation::Create(testing::UniformPoints(n, 11),
+                                 testing::ExecutorOptions());
   ASSERT_TRUE(t.ok());
   std::mt19937_64 rng(12);
   const double f = GetParam();
@@ -124,7 +125,8 @@ TEST(Kinetic, ClusteringAggregationAndDispersal) {
   // DLA-like: points drift onto a few attractors (clusters tighten until
   // points nearly coincide), then disperse again.
   const size_t n = 1500;
-  auto t = Triangulation::Create(testing::UniformPoints(n, 31), testing::ExecutorOptions());
+  auto t = Triangulation::Create(testing::UniformPoints(n, 31),
+                                 testing::ExecutorOptions());
   ASSERT_TRUE(t.ok());
   const std::vector<Vec2> attractors = {{0.2, 0.3}, {0.7, 0.8}, {0.6, 0.2}};
   std::mt19937_64 rng(32);
@@ -144,7 +146,8 @@ TEST(Kinetic, ClusteringAggregationAndDispersal) {
 
 TEST(Kinetic, HullExpandsAndContracts) {
   const size_t n = 1000;
-  auto t = Triangulation::Create(testing::UniformPoints(n, 41, 2.0, -1.0), testing::ExecutorOptions());
+  auto t = Triangulation::Create(testing::UniformPoints(n, 41, 2.0, -1.0),
+                                 testing::ExecutorOptions());
   ASSERT_TRUE(t.ok());
   std::mt19937_64 rng(42);
   std::normal_distribution<double> g(0.0, 0.01);
@@ -174,7 +177,8 @@ TEST(Kinetic, WholeStepSubdivision) {
 
 TEST(Kinetic, SparseUpdates) {
   const size_t n = 3000;
-  auto t = Triangulation::Create(testing::UniformPoints(n, 51), testing::ExecutorOptions());
+  auto t = Triangulation::Create(testing::UniformPoints(n, 51),
+                                 testing::ExecutorOptions());
   ASSERT_TRUE(t.ok());
   std::mt19937_64 rng(52);
   std::uniform_int_distribution<uint32_t> pick(0, n - 1);
@@ -275,7 +279,8 @@ TEST(Kinetic, CollinearBecomesPlanarAndBack) {
 TEST(Kinetic, ExtremeScalesMove) {
   for (double scale : {1e-12, 1e12}) {
     const size_t n = 800;
-    auto t = Triangulation::Create(testing::UniformPoints(n, 91, scale), testing::ExecutorOptions());
+    auto t = Triangulation::Create(testing::UniformPoints(n, 91, scale),
+                                   testing::ExecutorOptions());
     ASSERT_TRUE(t.ok());
     std::mt19937_64 rng(92);
     RunSequence(*t, 6, [&](int) {
@@ -315,7 +320,8 @@ TEST(Kinetic, ResultIndependentOfThreadCount) {
 
 TEST(Kinetic, BadInputIsRejectedAndChangesNothing) {
   const size_t n = 300;
-  auto t = Triangulation::Create(testing::UniformPoints(n, 111), testing::ExecutorOptions());
+  auto t = Triangulation::Create(testing::UniformPoints(n, 111),
+                                 testing::ExecutorOptions());
   ASSERT_TRUE(t.ok());
   const auto before_pos = t->Positions();
   const auto before_edges = t->Edges();
@@ -411,9 +417,8 @@ TEST(Kinetic, ClosePairsOvershoot) {
     d[i + 1] = {1.6 * (pts[i].x - pts[i + 1].x),
                 1.6 * (pts[i].y - pts[i + 1].y)};
   }
-  const PathTally tally = RunSequence(*t, 1, [&](int) {
-    return DisplacementBatch::Dense(d);
-  });
+  const PathTally tally =
+      RunSequence(*t, 1, [&](int) { return DisplacementBatch::Dense(d); });
   if (testing::kRegionExecutor) {
     EXPECT_EQ(tally.rebuilt, 0) << tally.reasons;
   }
