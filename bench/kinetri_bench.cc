@@ -31,14 +31,13 @@
 #include <vector>
 
 #include "absl/flags/flag.h"
-#include "absl/flags/parse.h"
-#include "absl/flags/usage.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
 #include "bench/grid_engine.h"
 #include "bench/nanoflann_cloud.h"
 #include "core/parallel.h"
+#include "core/program_flags.h"
 #include "core/queries.h"
 #include "core/triangulation.h"
 
@@ -242,7 +241,8 @@ std::string MachineJson(const std::string& commit) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  absl::SetProgramUsageMessage(
+  kinetri::ParseProgramFlags(
+      argc, argv,
       "Benchmarks Kinetri against CGAL (rebuild and move()), a uniform grid "
       "and nanoflann on moving points, all in one process: per-phase median "
       "and p90 milliseconds per step, answers cross-checked on the first "
@@ -250,7 +250,6 @@ int main(int argc, char** argv) {
       "  kinetri-bench --json=out.json    N = 10K, 100K, 1M, 20 steps\n"
       "Workloads: paper (the note's DLA set-up), brownian 0.01/0.1/1 "
       "spacings, shear, vortex, clustered.");
-  absl::ParseCommandLine(argc, argv);
   const std::string commit = SourceCommit();
   const bool quick = absl::GetFlag(FLAGS_quick);
   std::vector<size_t> sizes = quick

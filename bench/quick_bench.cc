@@ -18,9 +18,8 @@
 #include <vector>
 
 #include "absl/flags/flag.h"
-#include "absl/flags/parse.h"
-#include "absl/flags/usage.h"
 #include "bench/nanoflann_cloud.h"
+#include "core/program_flags.h"
 #include "core/queries.h"
 #include "core/triangulation.h"
 
@@ -96,11 +95,11 @@ double NanoflannAllNN(const std::vector<Vec2>& pts, int threads,
 }  // namespace
 
 int main(int argc, char** argv) {
-  absl::SetProgramUsageMessage(
+  kinetri::ParseProgramFlags(
+      argc, argv,
       "Times Kinetri's kinetic update against a CGAL rebuild and its "
       "all-points "
       "nearest-neighbour query against nanoflann (build + 2-NN), in one run.");
-  absl::ParseCommandLine(argc, argv);
   const uint32_t n = absl::GetFlag(FLAGS_n);
   const int steps = absl::GetFlag(FLAGS_steps);
   const double sigma = absl::GetFlag(FLAGS_sigma) / std::sqrt(double(n));

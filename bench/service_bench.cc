@@ -35,12 +35,11 @@
 #include <vector>
 
 #include "absl/flags/flag.h"
-#include "absl/flags/parse.h"
-#include "absl/flags/usage.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "bench/resp_client.h"
 #include "client/cpp/kinetri_client.h"
+#include "core/program_flags.h"
 #include "tests/e2e/server_process.h"
 
 ABSL_FLAG(int, n, 100000, "points");
@@ -164,12 +163,12 @@ std::string SeriesJson(const char* name, const Series& s, double seconds,
 }  // namespace
 
 int main(int argc, char** argv) {
-  absl::SetProgramUsageMessage(
+  kinetri::ParseProgramFlags(
+      argc, argv,
       "Service benchmark: kinetri-server vs redis-server (GEOADD + GEOSEARCH "
       "BYRADIUS) on loopback, same Brownian workload and radius queries, "
       "answers cross-checked. Example: kinetri-bench-service --n=100000 "
       "--steps=200 --queries=10000");
-  absl::ParseCommandLine(argc, argv);
   const int n = absl::GetFlag(FLAGS_n);
   const int steps = absl::GetFlag(FLAGS_steps);
   const int nq = absl::GetFlag(FLAGS_queries);

@@ -10,10 +10,9 @@
 #include <vector>
 
 #include "absl/flags/flag.h"
-#include "absl/flags/parse.h"
-#include "absl/flags/usage.h"
 #include "client/cpp/kinetri_client.h"
 #include "client/cpp/svg_writer.h"
+#include "core/program_flags.h"
 
 ABSL_FLAG(std::string, server, "127.0.0.1:50051", "kinetri-server address");
 ABSL_FLAG(std::string, mode, "dla",
@@ -49,11 +48,11 @@ int Fail(const char* what, const absl::Status& s) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  absl::SetProgramUsageMessage(
+  kinetri::ParseProgramFlags(
+      argc, argv,
       "Simulation client for kinetri-server: streams one displacement batch "
       "per step, queries nearest neighbours, prints steps/s and latencies, "
       "and writes an SVG of the final Delaunay triangulation.");
-  absl::ParseCommandLine(argc, argv);
   const std::string mode = absl::GetFlag(FLAGS_mode);
   if (mode != "dla" && mode != "brownian") {
     std::fprintf(stderr, "--mode must be dla or brownian\n");

@@ -12,8 +12,7 @@
 #include <thread>
 
 #include "absl/flags/flag.h"
-#include "absl/flags/parse.h"
-#include "absl/flags/usage.h"
+#include "core/program_flags.h"
 #include "server/metrics.h"
 #include "server/service.h"
 #include "server/session_registry.h"
@@ -45,12 +44,12 @@ void OnSignal(int) { g_stop = true; }
 }  // namespace
 
 int main(int argc, char** argv) {
-  absl::SetProgramUsageMessage(
+  kinetri::ParseProgramFlags(
+      argc, argv,
       "Serves Kinetri sessions (kinetic Delaunay triangulations of moving 2D "
       "points) over gRPC (kinetri.v1.KinetriService), with the gRPC health "
       "service, server reflection and Prometheus metrics. Defaults serve on "
       "loopback out of the box.");
-  absl::ParseCommandLine(argc, argv);
 
   kinetri::server::ServerLimits limits;
   limits.max_sessions = absl::GetFlag(FLAGS_max_sessions);

@@ -8,11 +8,10 @@
 #include <vector>
 
 #include "absl/flags/flag.h"
-#include "absl/flags/parse.h"
-#include "absl/flags/usage.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_split.h"
 #include "client/cpp/kinetri_client.h"
+#include "core/program_flags.h"
 
 ABSL_FLAG(std::string, server, "127.0.0.1:50051", "kinetri-server address");
 ABSL_FLAG(std::string, session, "", "session name (sessions/{id})");
@@ -84,8 +83,7 @@ void Print(const kinetri::v1::Session& s) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  absl::SetProgramUsageMessage(kUsage);
-  std::vector<char*> args = absl::ParseCommandLine(argc, argv);
+  std::vector<char*> args = kinetri::ParseProgramFlags(argc, argv, kUsage);
   if (args.size() != 2) {
     std::fputs(kUsage, stderr);
     return 2;
