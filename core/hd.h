@@ -8,4 +8,14 @@
 #define KINETRI_HD
 #endif
 
+// Rarely taken slow paths (exact predicate fallbacks): kept out of line so
+// the fast filters inline into hot loops without their large stack frames.
+#if defined(__CUDA_ARCH__)
+#define KINETRI_COLD __noinline__
+#elif defined(__GNUC__)
+#define KINETRI_COLD __attribute__((noinline, cold))
+#else
+#define KINETRI_COLD
+#endif
+
 #endif  // KINETRI_CORE_HD_H_

@@ -54,8 +54,8 @@ inline constexpr double kDistErrBound = 16.0 * kEps;
 
 KINETRI_HD inline int SignOf(double v) { return (v > 0.0) - (v < 0.0); }
 
-KINETRI_HD inline int Orient2dExact(const Vec2& a, const Vec2& b,
-                                    const Vec2& c) {
+KINETRI_HD KINETRI_COLD inline int Orient2dExact(const Vec2& a, const Vec2& b,
+                                                 const Vec2& c) {
   using namespace exact;
   const Expansion<2> acx = Diff(a.x, c.x), acy = Diff(a.y, c.y);
   const Expansion<2> bcx = Diff(b.x, c.x), bcy = Diff(b.y, c.y);
@@ -68,8 +68,8 @@ KINETRI_HD inline int Orient2dExact(const Vec2& a, const Vec2& b,
   return Sign(det);
 }
 
-KINETRI_HD inline int InCircleExact(const Vec2& a, const Vec2& b, const Vec2& c,
-                                    const Vec2& d) {
+KINETRI_HD KINETRI_COLD inline int InCircleExact(const Vec2& a, const Vec2& b,
+                                                 const Vec2& c, const Vec2& d) {
   using namespace exact;
   const Expansion<2> adx = Diff(a.x, d.x), ady = Diff(a.y, d.y);
   const Expansion<2> bdx = Diff(b.x, d.x), bdy = Diff(b.y, d.y);
@@ -102,8 +102,9 @@ KINETRI_HD inline int InCircleExact(const Vec2& a, const Vec2& b, const Vec2& c,
   return Sign(det);
 }
 
-KINETRI_HD inline int CompareDistanceExact(const Vec2& q, const Vec2& a,
-                                           const Vec2& b) {
+KINETRI_HD KINETRI_COLD inline int CompareDistanceExact(const Vec2& q,
+                                                        const Vec2& a,
+                                                        const Vec2& b) {
   using namespace exact;
   const Expansion<2> ax = Diff(q.x, a.x), ay = Diff(q.y, a.y);
   const Expansion<2> bx = Diff(q.x, b.x), by = Diff(q.y, b.y);
@@ -121,8 +122,9 @@ KINETRI_HD inline int CompareDistanceExact(const Vec2& q, const Vec2& a,
   return Sign(det);
 }
 
-KINETRI_HD inline int CompareDistanceToRadiusExact(const Vec2& q, const Vec2& p,
-                                                   double r) {
+KINETRI_HD KINETRI_COLD inline int CompareDistanceToRadiusExact(const Vec2& q,
+                                                                const Vec2& p,
+                                                                double r) {
   using namespace exact;
   const Expansion<2> dx = Diff(q.x, p.x), dy = Diff(q.y, p.y);
   Expansion<8> xx, yy;

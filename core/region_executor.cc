@@ -200,6 +200,37 @@ void AppendStarAndHullRing(const Mesh& mesh, uint32_t v,
   AppendStarAndHullRingFrom(mesh.view(), mesh.vertex_edge()[v], out);
 }
 
+// The fused dense scan of triangle slots [lo, hi): invalid triangles
+// (rules::TriangleOk false) and illegal canonical edges (e < twin(e),
+// rules::IsIllegal true), each predicate evaluated once, each vertex
+// position loaded once per triangle.
+void ScanRange(const MeshView& m, const Vec2* p, uint32_t lo, uint32_t hi,
+               std::vector<uint32_t>* invalid, std::vector<uint32_t>* illegal) {
+  for (uint32_t t = lo; t < hi; ++t) {
+    const uint32_t v[3] = {m.origin[3 * t], m.origin[3 * t + 1],
+                           m.origin[3 * t + 2]};
+    if (v[0] == kNoVertex) continue;  // free slot
+    if (v[0] == kInfiniteVertex || v[1] == kInfiniteVertex ||
+        v[2] == kInfiniteVertex) {
+      // Ghost: its hull turn decides; its edges are never illegal.
+      if (!rules::TriangleOk(m, p, t)) invalid->push_back(t);
+      continue;
+    }
+    const Vec2 q[3] = {p[v[0]], p[v[1]], p[v[2]]};
+    if (Orient2d(q[0], q[1], q[2]) <= 0) invalid->push_back(t);
+    for (uint32_t k = 0; k < 3; ++k) {
+      const uint32_t e = 3 * t + k, f = m.twin[e];
+      if (e > f) continue;
+      const uint32_t d = m.origin[Prev(f)];
+      if (d == kInfiniteVertex) continue;
+      // Edge e: origin q[k], destination q[k+1], apex q[k+2] (as IsIllegal).
+      if (InCircleSoS(q[k], q[(k + 1) % 3], q[(k + 2) % 3], p[d]) > 0) {
+        illegal->push_back(e);
+      }
+    }
+  }
+}
+
 inline void AtomicMin(uint32_t* slot, uint32_t value) {
   std::atomic_ref<uint32_t> ref(*slot);
   uint32_t cur = ref.load(std::memory_order_relaxed);
@@ -541,16 +572,7 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
                           const uint32_t lo = static_cast<uint32_t>(r * rt);
                           const uint32_t hi = static_cast<uint32_t>(
                               std::min<size_t>(nt, (r + 1) * size_t{rt}));
-                          for (uint32_t t = lo; t < hi; ++t) {
-                            if (m.IsFree(t)) continue;
-                            if (!rules::TriangleOk(m, p, t))
-                              g.invalid.push_back(t);
-                            for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
-                              if (e < m.twin[e] && rules::IsIllegal(m, p, e)) {
-                                g.illegal.push_back(e);
-                              }
-                            }
-                          }
+                          ScanRange(m, p, lo, hi, &g.invalid, &g.illegal);
                         }
                       });
   } else {

@@ -186,18 +186,19 @@ class Triangulation {
   // Coincident points whose positions in `next` leave their site: detached
   // from it (they are inserted again at the end of the step).
   std::vector<uint32_t> DetachPartingPoints(const std::vector<Vec2>& next);
-  // Moves to `next` and inserts the vertices in `reinsert` (removed from the
-  // mesh or detached) at their new positions; refreshes the site list.
-  bool FinishLocalStep(const std::vector<Vec2>& next,
-                       std::vector<uint32_t> reinsert,
+  // Moves to `next` (swapped into pos_; `next` keeps the old positions on
+  // success, the new ones on failure) and inserts the vertices in
+  // `reinsert` (removed from the mesh or detached) at their new positions;
+  // refreshes the site list.
+  bool FinishLocalStep(std::vector<Vec2>& next, std::vector<uint32_t> reinsert,
                        std::vector<uint32_t>& hints, StepReport* report,
                        std::string* reason);
   // Kinetic path of the region executor; false (with reason): rebuild.
-  bool RegionUpdate(const std::vector<Vec2>& next,
+  bool RegionUpdate(std::vector<Vec2>& next,
                     const std::vector<uint32_t>& moved_points,
                     StepReport* report, std::string* reason);
   // Kinetic path of the round executor; false (with reason): rebuild.
-  bool LocalUpdate(const std::vector<Vec2>& next,
+  bool LocalUpdate(std::vector<Vec2>& next,
                    const std::vector<uint32_t>& moved_points,
                    StepReport* report, std::string* reason);
   // Inserts the points (at pos_) into the mesh in rounds: locate all in
@@ -212,7 +213,8 @@ class Triangulation {
   TriangulationOptions options_;
   std::unique_ptr<tbb::task_arena> arena_;
 
-  std::vector<Vec2> pos_;  // by internal id
+  std::vector<Vec2> pos_;   // by internal id
+  std::vector<Vec2> next_;  // the step's new positions (kept: no page faults)
   std::vector<uint32_t> ext_of_int_;
   std::vector<uint32_t> int_of_ext_;
   std::vector<uint32_t> rep_;       // site representative, internal id
