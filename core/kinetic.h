@@ -29,6 +29,33 @@ struct FlipCounts {
   FlipCounts& operator+=(const FlipCounts& o);
 };
 
+// Every knob of the round executor's update (Triangulation::LocalUpdate);
+// validated by Triangulation::Create. Nothing in the round path is a
+// hard-coded threshold.
+struct RoundStepPolicy {
+  // Whole-step splitting: a step whose fixing gets stuck is split into at
+  // most 2^depth sub-steps for all points. 0 leaves splitting to the cheaper
+  // local sub-steps (only the stuck vertices' motion is halved).
+  int max_subdivision_depth = 0;
+  // How often a stuck vertex's own motion may be halved before it is
+  // removed and re-inserted instead.
+  int max_halvings = 4;
+  // Rebuild at once when more than this fraction of all triangles is
+  // invalid after moving (local repair would cost more than CGAL).
+  double rebuild_fraction = 0.04;
+  // Rebuild when the kinetic passes of one step exceed this number.
+  int max_passes = 64;
+  // A pass is sparse (seeded from the moved vertices' stars instead of a
+  // scan of every triangle) when fewer than this fraction of points move.
+  double sparse_fraction = 0.25;
+  // Re-insertion budget per step: at most max(reinsert_min,
+  // reinsert_fraction * sites) removed vertices, and at least
+  // min_sites_left sites must stay in the mesh; beyond that, rebuild.
+  uint32_t reinsert_min = 64;
+  double reinsert_fraction = 0.125;
+  uint32_t min_sites_left = 8;
+};
+
 // Claim arrays reused across rounds and calls (all entries kNoEdge between
 // uses).
 struct FlipScratch {

@@ -2,7 +2,9 @@
 #include "core/queries.h"
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
+#include <cstdint>
 #include <queue>
 
 #include "absl/container/flat_hash_set.h"
@@ -68,20 +70,55 @@ std::vector<T>& Scratch() {
   return v;
 }
 
-// Appends the points of `site` (ascending external id) except `skip`.
+// Appends the points of `site` (ascending external id) except `skip`, at
+// most `cap` of them. A site of many coincident points is read from the
+// sorted member rows of the query view (a prefix, not the whole chain).
 void EmitSite(const TriangulationView& v, uint32_t site, const Vec2& q,
-              uint32_t skip, std::vector<Hit>& out, bool distance = true) {
-  const size_t begin = out.size();
+              uint32_t skip, std::vector<Hit>& out, bool distance = true,
+              size_t cap = SIZE_MAX) {
+  if (cap == 0) return;
   const double d = distance ? Distance(q, v.pos[site]) : 0.0;
+  if (v.dup_next[site] == kNoVertex) {
+    const uint32_t ext = v.ext_of_int[site];
+    if (ext != skip) out.push_back({ext, d});
+    return;
+  }
+  if (v.site_member_offsets != nullptr) {
+    const uint32_t end = v.site_member_offsets[site + 1];
+    for (uint32_t k = v.site_member_offsets[site]; k < end && cap > 0; ++k) {
+      if (v.site_members[k] == skip) continue;
+      out.push_back({v.site_members[k], d});
+      --cap;
+    }
+    return;
+  }
+  const size_t begin = out.size();
   for (uint32_t p = site; p != kNoVertex; p = v.dup_next[p]) {
     const uint32_t ext = v.ext_of_int[p];
     if (ext != skip) out.push_back({ext, d});
   }
-  if (out.size() - begin > 1) {
-    std::sort(out.begin() + begin, out.end(),
-              [](const Hit& a, const Hit& b) { return a.ext < b.ext; });
-  }
+  std::sort(out.begin() + begin, out.end(),
+            [](const Hit& a, const Hit& b) { return a.ext < b.ext; });
+  if (out.size() - begin > cap) out.resize(begin + cap);
 }
+
+// How a row ended.
+enum RowEnd : int {
+  kRowComplete = 0,
+  kRowTruncated = 1,   // cut at max_results (flagged in NeighborLists)
+  kRowOverBudget = 2,  // the query's total limit was passed
+  kRowCancelled = 3,
+};
+
+// What a row may still produce, and the query's cancellation.
+struct RowBudget {
+  uint64_t cap = UINT64_MAX;  // results this row may add before the query
+                              // exceeds its total limit
+  const CancelToken* cancel = nullptr;
+  // Poll the token every this many visited sites inside one row.
+  static constexpr uint32_t kPollEvery = 4096;
+  bool Cancelled() const { return cancel != nullptr && cancel->Cancelled(); }
+};
 
 absl::Status CheckQueryPosition(const Vec2& p, size_t i) {
   for (int axis = 0; axis < 2; ++axis) {
@@ -173,6 +210,8 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
   // slot starts in its block's buffer (block = slot / kBlock).
   std::vector<uint32_t> slot_of(nq, 0);
   std::vector<uint64_t> row_start(nq, 0);
+  std::atomic<uint64_t> total{0};
+  std::atomic<bool> stop{false}, exceeded{false};
   if (t.num_sites() > 0) {
     const TriangulationView v = t.query_view();
     t.Run([&] {
@@ -209,6 +248,12 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
             std::vector<Hit>& row = Scratch<Hit>();
             for (size_t j = b * kBlock; j < std::min(nq, (b + 1) * kBlock);
                  ++j) {
+              if (stop.load(std::memory_order_relaxed)) return;
+              if (limits.cancel != nullptr && j % 64 == 0 &&
+                  limits.cancel->Cancelled()) {
+                stop.store(true, std::memory_order_relaxed);
+                return;
+              }
               const Query& q = sorted[j];
               const uint32_t s = sorted_start[j];
               // A query at a site's own position (queries of points)
@@ -216,7 +261,31 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
               const uint32_t root =
                   v.pos[s] == q.q ? s : WalkToNearestSite(v, q.q, s);
               row.clear();
-              sorted_truncated[j] = row_fn(v, q, root, row) ? 1 : 0;
+              RowBudget budget;
+              budget.cancel = limits.cancel;
+              if (limits.max_total_results) {
+                const uint64_t used = total.load(std::memory_order_relaxed);
+                budget.cap = used >= limits.max_total_results
+                                 ? 0
+                                 : limits.max_total_results - used;
+              }
+              const int end = row_fn(v, q, root, budget, row);
+              if (end == kRowCancelled) {
+                stop.store(true, std::memory_order_relaxed);
+                return;
+              }
+              // The limit is checked inside rows and as rows complete:
+              // work stops as soon as the total passes it.
+              if (end == kRowOverBudget || row.size() > budget.cap ||
+                  (limits.max_total_results &&
+                   total.fetch_add(row.size(), std::memory_order_relaxed) +
+                           row.size() >
+                       limits.max_total_results)) {
+                exceeded.store(true, std::memory_order_relaxed);
+                stop.store(true, std::memory_order_relaxed);
+                return;
+              }
+              sorted_truncated[j] = end == kRowTruncated ? 1 : 0;
               sorted_size[j] = row.size();
               row_start[j] = hits.size();
               hits.insert(hits.end(), row.begin(), row.end());
@@ -231,15 +300,19 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
       });
     });
   }
+  if (exceeded.load()) {
+    return absl::ResourceExhaustedError(absl::StrCat(
+        "query stopped: its rows hold more than ", limits.max_total_results,
+        " results in all (the limit); ask fewer targets, a smaller k or "
+        "radius, or set max_results_per_row"));
+  }
+  if (stop.load() && limits.cancel != nullptr) {
+    if (absl::Status s = limits.cancel->Check("query"); !s.ok()) return s;
+  }
   NeighborLists out;
   out.offsets.assign(nq + 1, 0);
   for (size_t i = 0; i < nq; ++i) {
     out.offsets[i + 1] = out.offsets[i] + row_size[i];
-  }
-  if (limits.max_total_results && out.offsets[nq] > limits.max_total_results) {
-    return absl::ResourceExhaustedError(absl::StrCat(
-        "query produced ", out.offsets[nq], " results, above the limit of ",
-        limits.max_total_results));
   }
   out.ids.resize(out.offsets[nq]);
   if (distances) out.distances.resize(out.offsets[nq]);
@@ -257,6 +330,56 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
   return out;
 }
 
+// The first `want` points of q's order (fewer if the set is smaller), by
+// best-first expansion from root over a bounded candidate list kept in the
+// exact order (squared distances in double decide clear cases). A candidate
+// ranked beyond what can still be taken is dropped: every pop emits at
+// least one point (only the query's own site, popped first, may emit none),
+// so with `need` points still wanted at most need + 1 more sites are
+// popped, and anything behind need + 1 better candidates is never reached.
+// Visited sites are marked with per-thread epoch stamps.
+int KnnRow(const TriangulationView& v, const Query& q, uint32_t root,
+           size_t want, const RowBudget& budget, std::vector<Hit>& out) {
+  using Entry = std::pair<double, uint32_t>;
+  auto before = [&](const Entry& a, const Entry& b) {
+    return CompareCloserCached(q.q, v.pos[a.second], a.first, v.pos[b.second],
+                               b.first) < 0;
+  };
+  std::vector<Entry>& cand = Scratch<Entry>();
+  const VisitMarks::Search marks = VisitMarks::Begin(v.num_points);
+  cand.clear();
+  cand.push_back({SquaredDistance(q.q, v.pos[root]), root});
+  marks.Visit(root);
+  size_t head = 0;  // cand[head..] sorted, closest first
+  uint32_t pops = 0;
+  while (head < cand.size() && out.size() < want) {
+    if (++pops % RowBudget::kPollEvery == 0 && budget.Cancelled()) {
+      return kRowCancelled;
+    }
+    const uint32_t s = cand[head++].second;
+    EmitSite(v, s, q.q, q.self_ext, out, true, want - out.size());
+    if (out.size() >= want) break;
+    const size_t cap = want - out.size() + 1;
+    for (const uint32_t* it = v.RowBegin(s); it != v.RowEnd(s); ++it) {
+      const uint32_t w = *it;
+      if (!marks.Visit(w)) continue;
+      const Entry e{SquaredDistance(q.q, v.pos[w]), w};
+      const size_t live = cand.size() - head;
+      if (live >= cap && !before(e, cand.back())) continue;
+      size_t j = cand.size();
+      cand.push_back(e);
+      while (j > head && before(e, cand[j - 1])) {
+        cand[j] = cand[j - 1];
+        --j;
+      }
+      cand[j] = e;
+      if (cand.size() - head > cap) cand.pop_back();
+    }
+  }
+  if (out.size() > want) out.resize(want);
+  return kRowComplete;
+}
+
 absl::StatusOr<NeighborLists> KNearestImpl(const Triangulation& t,
                                            const std::vector<Query>& queries,
                                            int k, QueryLimits limits) {
@@ -265,49 +388,8 @@ absl::StatusOr<NeighborLists> KNearestImpl(const Triangulation& t,
   return RunRows(
       t, queries, limits, /*distances=*/true,
       [want](const TriangulationView& v, const Query& q, uint32_t root,
-             std::vector<Hit>& out) {
-        // Best-first expansion over a bounded candidate list kept in the
-        // exact order (squared distances in double decide clear cases).
-        // A candidate ranked beyond what can still be taken is dropped:
-        // every pop emits at least one point (only the query's own site,
-        // popped first, may emit none), so with `need` points still
-        // wanted at most need + 1 more sites are popped, and anything
-        // behind need + 1 better candidates is never reached. Visited
-        // sites are marked with per-thread epoch stamps.
-        using Entry = std::pair<double, uint32_t>;
-        auto before = [&](const Entry& a, const Entry& b) {
-          return CompareCloserCached(q.q, v.pos[a.second], a.first,
-                                     v.pos[b.second], b.first) < 0;
-        };
-        std::vector<Entry>& cand = Scratch<Entry>();
-        const VisitMarks::Search marks = VisitMarks::Begin(v.num_points);
-        cand.clear();
-        cand.push_back({SquaredDistance(q.q, v.pos[root]), root});
-        marks.Visit(root);
-        size_t head = 0;  // cand[head..] sorted, closest first
-        while (head < cand.size() && out.size() < want) {
-          const uint32_t s = cand[head++].second;
-          EmitSite(v, s, q.q, q.self_ext, out);
-          if (out.size() >= want) break;
-          const size_t cap = want - out.size() + 1;
-          for (const uint32_t* it = v.RowBegin(s); it != v.RowEnd(s); ++it) {
-            const uint32_t w = *it;
-            if (!marks.Visit(w)) continue;
-            const Entry e{SquaredDistance(q.q, v.pos[w]), w};
-            const size_t live = cand.size() - head;
-            if (live >= cap && !before(e, cand.back())) continue;
-            size_t j = cand.size();
-            cand.push_back(e);
-            while (j > head && before(e, cand[j - 1])) {
-              cand[j] = cand[j - 1];
-              --j;
-            }
-            cand[j] = e;
-            if (cand.size() - head > cap) cand.pop_back();
-          }
-        }
-        if (out.size() > want) out.resize(want);
-        return false;
+             const RowBudget& budget, std::vector<Hit>& out) {
+        return KnnRow(v, q, root, want, budget, out);
       });
 }
 
@@ -320,8 +402,11 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
   return RunRows(
       t, queries, limits, options.distances,
       [r, max_results, options](const TriangulationView& v, const Query& q,
-                                uint32_t root, std::vector<Hit>& out) {
-        if (CompareDistanceToRadius(q.q, v.pos[root], r) > 0) return false;
+                                uint32_t root, const RowBudget& budget,
+                                std::vector<Hit>& out) -> int {
+        if (CompareDistanceToRadius(q.q, v.pos[root], r) > 0) {
+          return kRowComplete;
+        }
         // Breadth-first over Delaunay neighbours inside the disk,
         // from the first site. Visited marks are per-thread epoch
         // stamps: a constant time check, never a scan. Squared
@@ -333,7 +418,39 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
         found.push_back({SquaredDistance(q.q, v.pos[root]), root});
         marks.Visit(root);
         const double rr = r * r;
+        // A row cut at max_results holds the closest max_results points:
+        // once the disk holds clearly more sites than that, the k-nearest
+        // expansion finds them with work bounded by max_results instead.
+        const size_t knn_switch =
+            max_results ? 4 * size_t{max_results} + 1024 : SIZE_MAX;
         for (size_t head = 0; head < found.size(); ++head) {
+          if (found.size() > knn_switch) {
+            out.clear();
+            const int end =
+                KnnRow(v, q, root, size_t{max_results} + 1, budget, out);
+            if (end != kRowComplete) return end;
+            size_t keep = 0;
+            while (keep < out.size() &&
+                   CompareDistanceToRadius(
+                       q.q, v.pos[v.int_of_ext[out[keep].ext]], r) <= 0) {
+              ++keep;
+            }
+            out.resize(keep);
+            if (!options.distances) {
+              for (Hit& h : out) h.dist = 0.0;
+            }
+            if (out.size() > max_results) {
+              out.resize(max_results);
+              return kRowTruncated;
+            }
+            return kRowComplete;
+          }
+          // Every site but the query's own emits a point.
+          if (found.size() - 1 > budget.cap) return kRowOverBudget;
+          if (head % RowBudget::kPollEvery == RowBudget::kPollEvery - 1 &&
+              budget.Cancelled()) {
+            return kRowCancelled;
+          }
           const uint32_t u = found[head].second;
           for (const uint32_t* it = v.RowBegin(u); it != v.RowEnd(u); ++it) {
             const uint32_t w = *it;
@@ -352,7 +469,9 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
           for (const auto& f : found) {
             EmitSite(v, f.second, q.q, q.self_ext, out, options.distances);
           }
-          if (max_results == 0 || out.size() <= max_results) return false;
+          if (max_results == 0 || out.size() <= max_results) {
+            return kRowComplete;
+          }
           out.clear();  // a cut row keeps the closest points: sort after all
         }
         // Closest first: sort on the double squared distances,
@@ -375,9 +494,9 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
         }
         if (max_results && out.size() > max_results) {
           out.resize(max_results);
-          return true;
+          return kRowTruncated;
         }
-        return false;
+        return kRowComplete;
       });
 }
 

@@ -37,6 +37,7 @@
 
 #include "absl/status/statusor.h"
 #include "absl/types/span.h"
+#include "core/cancel.h"
 #include "core/triangulation.h"
 #include "core/vec2.h"
 
@@ -66,8 +67,14 @@ struct RowOptions {
 };
 
 struct QueryLimits {
-  // Total result rows above this fail with RESOURCE_EXHAUSTED (0 = no limit).
+  // Total results above this fail with RESOURCE_EXHAUSTED (0 = no limit).
+  // The limit is checked while rows are built (a row stops as soon as it
+  // would pass it), so a refused query costs about the limit, not its
+  // answer.
   uint64_t max_total_results = 0;
+  // Polled per row and every few thousand sites inside a row; when it fires
+  // the query stops and returns CANCELLED or DEADLINE_EXCEEDED.
+  const CancelToken* cancel = nullptr;
 };
 
 // Nearest other point of every point (the note's all-points query). A point

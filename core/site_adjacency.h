@@ -19,9 +19,16 @@ struct SiteAdjacency {
   // degrees is below 6 * 2^29 < 2^32, so 32-bit offsets suffice.
   std::vector<uint32_t> offsets;
   std::vector<uint32_t> neighbours;
+  // Only when some site holds several points: the external ids of each
+  // site's points, ascending (queries emit the first few of a large site
+  // without walking and sorting all of them).
+  std::vector<uint32_t> member_offsets;
+  std::vector<uint32_t> members;
 
   size_t bytes() const {
-    return (offsets.capacity() + neighbours.capacity()) * sizeof(uint32_t);
+    return (offsets.capacity() + neighbours.capacity() +
+            member_offsets.capacity() + members.capacity()) *
+           sizeof(uint32_t);
   }
 };
 

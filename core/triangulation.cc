@@ -130,10 +130,17 @@ absl::StatusOr<Triangulation> Triangulation::Create(
   if (options.num_threads < 0) {
     return absl::InvalidArgumentError("num_threads must be >= 0");
   }
-  if (options.max_halvings < 0 || options.max_halvings > 30 ||
-      options.max_passes < 1) {
+  const RoundStepPolicy& ro = options.round;
+  if (ro.max_halvings < 0 || ro.max_halvings > 30 || ro.max_passes < 1 ||
+      ro.max_passes > 4096 || ro.max_subdivision_depth < 0 ||
+      ro.max_subdivision_depth > 16 ||
+      !(ro.rebuild_fraction >= 0.0 && ro.rebuild_fraction <= 1.0) ||
+      !(ro.sparse_fraction >= 0.0 && ro.sparse_fraction <= 1.0) ||
+      !(ro.reinsert_fraction >= 0.0 && ro.reinsert_fraction <= 1.0)) {
     return absl::InvalidArgumentError(
-        "max_halvings must be in [0, 30] and max_passes >= 1");
+        "round policy: max_halvings must be in [0, 30], max_passes in [1, "
+        "4096], max_subdivision_depth in [0, 16], rebuild_fraction, "
+        "sparse_fraction and reinsert_fraction in [0, 1]");
   }
   const RegionStepPolicy& rp = options.region;
   if (rp.region_triangles < 16 || rp.max_halvings < 0 || rp.max_halvings > 60 ||
@@ -146,10 +153,6 @@ absl::StatusOr<Triangulation> Triangulation::Create(
         "region policy: region_triangles must be >= 16, max_halvings in "
         "[0, 60], max_passes in [1, 1024], sparse_fraction in [0, 1], "
         "costs finite and >= 0");
-  }
-  if (options.max_subdivision_depth < 0 || options.max_subdivision_depth > 16) {
-    return absl::InvalidArgumentError(
-        "max_subdivision_depth must be in [0, 16]");
   }
   for (size_t i = 0; i < points.size(); ++i) {
     absl::Status s = CheckPosition(points[i], "points", i);
@@ -199,6 +202,10 @@ TriangulationView Triangulation::query_view() const {
   }
   v.adj_offsets = adjacency_->rows.offsets.data();
   v.adj = adjacency_->rows.neighbours.data();
+  if (!adjacency_->rows.member_offsets.empty()) {
+    v.site_member_offsets = adjacency_->rows.member_offsets.data();
+    v.site_members = adjacency_->rows.members.data();
+  }
   return v;
 }
 
@@ -324,8 +331,8 @@ bool Triangulation::TryStep(const std::vector<Vec2>& to,
       KineticExecutor::FindInvalidTriangles(mesh_, to, moved);
   std::vector<uint32_t> touched, log, stuck;
   FlipCounts counts;
-  if (moved == nullptr &&
-      invalid.size() > options_.rebuild_fraction * mesh_.num_triangles()) {
+  if (moved == nullptr && invalid.size() > options_.round.rebuild_fraction *
+                                               mesh_.num_triangles()) {
     // So much of the mesh is tangled that a rebuild is cheaper.
     report->fix_seconds += SecondsSince(t0);
     too_tangled_ = true;
@@ -371,7 +378,7 @@ bool Triangulation::TryStep(const std::vector<Vec2>& to,
   }
   KineticExecutor::Undo(mesh_, log);
   report->fix_seconds += SecondsSince(t0);
-  if (depth >= options_.max_subdivision_depth) return false;
+  if (depth >= options_.round.max_subdivision_depth) return false;
   // Split: move halfway, then the rest.
   std::vector<Vec2> mid = pos_;
   auto halfway = [&](size_t i) {
@@ -504,9 +511,11 @@ bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
   // 2. Kinetic step. Vertices of triangles that fixing cannot repair have
   //    their own motion halved (a local sub-step) and finish it in later
   //    sub-steps; after kMaxHalvings they are removed and re-inserted.
-  const int kMaxHalvings = options_.max_halvings;
-  const uint32_t max_removed =
-      std::max<uint32_t>(64, static_cast<uint32_t>(sites_.size() / 8));
+  const RoundStepPolicy& policy = options_.round;
+  const int kMaxHalvings = policy.max_halvings;
+  const uint32_t max_removed = std::max<uint32_t>(
+      policy.reinsert_min,
+      static_cast<uint32_t>(policy.reinsert_fraction * sites_.size()));
   std::vector<uint32_t> removed;
   std::vector<uint32_t> hints(n, kNoVertex);
   std::vector<uint8_t> level(n, 0);
@@ -516,18 +525,17 @@ bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
   const auto& ve = mesh_.vertex_edge();
   std::vector<Vec2> goal = next;
   std::vector<uint32_t> active = moved_points;  // candidates still to move
-  bool ok = false;
   auto set_goal = [&](uint32_t v, const Vec2& g) {
     for (uint32_t p = v; p != kNoVertex; p = dup_next_[p]) goal[p] = g;
   };
-  for (int attempt = 0; attempt < 64; ++attempt) {
+  for (int attempt = 0;; ++attempt) {
     std::vector<uint32_t> moved;
     for (uint32_t i : active) {
       if (rep_[i] == i && ve[i] != kNoEdge && goal[i] != pos_[i]) {
         moved.push_back(i);
       }
     }
-    const bool sparse = moved.size() * 4 < n;
+    const bool sparse = moved.size() < policy.sparse_fraction * n;
     std::vector<uint32_t> seeds;
     if (sparse) {
       seeds = KineticExecutor::TrianglesAround(mesh_, moved);
@@ -539,12 +547,12 @@ bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
     const bool passed = TryStep(goal, sparse ? &moved : nullptr,
                                 sparse ? &seeds : nullptr, 0, report, &stuck);
     if (too_tangled_) {
-      *reason = absl::StrCat("over ", options_.rebuild_fraction * 100,
+      *reason = absl::StrCat("over ", options_.round.rebuild_fraction * 100,
                              "% of the triangles inverted: rebuilding is "
                              "cheaper");
       return false;
     }
-    if (attempt >= options_.max_passes) {
+    if (attempt >= options_.round.max_passes) {
       *reason = absl::StrCat("still stuck after ", attempt,
                              " passes: rebuilding is cheaper");
       return false;
@@ -558,10 +566,7 @@ bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
           held.push_back(v);
         }
       }
-      if (held.empty()) {
-        ok = true;
-        break;
-      }
+      if (held.empty()) break;
       for (uint32_t v : held) {
         if (halve_on_resume[v] && level[v] < kMaxHalvings) {
           halve_on_resume[v] = 0;
@@ -659,7 +664,8 @@ bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
                     to_remove.end());
     ++report->local_halvings;
     if (removed.size() + to_remove.size() > max_removed ||
-        sites_.size() - removed.size() - to_remove.size() < 8) {
+        sites_.size() <
+            removed.size() + to_remove.size() + policy.min_sites_left) {
       *reason =
           absl::StrCat("fixing stuck; ", removed.size() + to_remove.size(),
                        " vertices to re-insert exceed the local budget");
@@ -688,10 +694,6 @@ bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
     }
   }
   removal_touched_.clear();
-  if (!ok) {
-    *reason = "fixing stuck after 64 local sub-steps";
-    return false;
-  }
   // 3. Insert removed vertices and detached points at their new positions.
   reinsert.insert(reinsert.end(), removed.begin(), removed.end());
   return FinishLocalStep(next, std::move(reinsert), hints, report, reason);

@@ -24,10 +24,10 @@
 //  * the round executor (core/kinetic.h): global parallel rounds; when fixing
 //    gets stuck the stuck vertices are held back, then their motion is
 //    halved, and they finish it in further sparse passes (optionally the
-//    whole step is split too, max_subdivision_depth); a vertex stuck more
-//    than max_halvings times is removed and re-inserted. CGAL rebuilds the
-//    mesh when more than rebuild_fraction of the triangles invert, when
-//    re-insertion would exceed 1/8 of the sites, or when max_passes run out.
+//    whole step is split too); a vertex stuck more than max_halvings times
+//    is removed and re-inserted. CGAL rebuilds the mesh when more than
+//    rebuild_fraction of the triangles invert, when re-insertion would
+//    exceed its budget, or when max_passes run out (RoundStepPolicy).
 // StepReport tells which path was taken.
 #ifndef KINETRI_CORE_TRIANGULATION_H_
 #define KINETRI_CORE_TRIANGULATION_H_
@@ -63,22 +63,10 @@ enum class Executor {
 struct TriangulationOptions {
   int num_threads = 0;  // 0: all cores
   Executor executor = Executor::kRegions;
-  // Knobs of the region executor. The fields below are the round
-  // executor's (num_threads and the renumbering ones apply to both).
+  // Knobs of each executor (num_threads and the renumbering ones below
+  // apply to both).
   RegionStepPolicy region;
-  // Whole-step splitting: a step whose fixing gets stuck is split into at
-  // most 2^depth sub-steps for all points. 0 (default) leaves splitting to
-  // the cheaper local sub-steps: only the stuck vertices' motion is halved
-  // (up to 4 times) before they are re-inserted.
-  int max_subdivision_depth = 0;
-  // Local sub-steps: how often a stuck vertex's own motion may be halved
-  // before it is removed and re-inserted instead.
-  int max_halvings = 4;
-  // Rebuild at once when more than this fraction of all triangles is
-  // invalid after moving (local repair would cost more than CGAL).
-  double rebuild_fraction = 0.04;
-  // Rebuild when the kinetic passes of one step exceed this number.
-  int max_passes = 64;
+  RoundStepPolicy round;
   double renumber_stretch = 2.0;    // renumber when edge span grows this much
   int renumber_check_interval = 8;  // steps between locality checks
 };

@@ -29,6 +29,11 @@ struct TriangulationView {
   // ForEachNeighbor reads them instead of walking the mesh.
   const uint32_t* adj_offsets = nullptr;
   const uint32_t* adj = nullptr;
+  // Optional (query views of point sets with coincident points): the
+  // external ids of the points of site v, ascending, are
+  // site_members[site_member_offsets[v] .. site_member_offsets[v + 1]).
+  const uint32_t* site_member_offsets = nullptr;
+  const uint32_t* site_members = nullptr;
 
   KINETRI_HD bool planar() const { return mesh.num_half_edges > 0; }
 

@@ -148,46 +148,48 @@ v1::StepStats ToProto(const core::StepReport& r) {
   return s;
 }
 
-std::vector<v1::QueryResponse> ToChunks(
-    const core::NeighborLists& lists, uint64_t step, bool distances,
-    uint32_t rows_per_chunk, const std::vector<uint64_t>* client_ids) {
+uint64_t NumChunks(const core::NeighborLists& lists, uint32_t rows_per_chunk) {
   const uint64_t rows = lists.num_queries();
-  std::vector<v1::QueryResponse> out;
-  if (rows_per_chunk == 0) rows_per_chunk = 1;
-  for (uint64_t first = 0; first < rows || (rows == 0 && out.empty());
-       first += rows_per_chunk) {
-    v1::QueryResponse r;
-    r.set_step(step);
-    r.set_first_row(first);
-    r.set_total_rows(rows);
-    const uint64_t last = std::min<uint64_t>(rows, first + rows_per_chunk);
-    if (rows > 0) {
-      const uint64_t base = lists.offsets[first];
-      for (uint64_t i = first; i <= last; ++i) {
-        r.add_offsets(lists.offsets[i] - base);
-      }
-      const uint64_t end = lists.offsets[last];
-      if (client_ids != nullptr) {
-        for (uint64_t k = base; k < end; ++k) {
-          r.add_client_ids((*client_ids)[lists.ids[k]]);
-        }
-      } else {
-        r.mutable_ids()->Add(lists.ids.begin() + base, lists.ids.begin() + end);
-      }
-      if (distances) {
-        r.mutable_distances()->Add(lists.distances.begin() + base,
-                                   lists.distances.begin() + end);
-      }
-      for (uint64_t i = first; i < last; ++i) {
-        if (lists.truncated[i]) r.add_truncated_rows(i - first);
-      }
-    } else {
-      r.add_offsets(0);
-    }
-    out.push_back(std::move(r));
-    if (rows == 0) break;
+  const uint64_t per = std::max<uint32_t>(rows_per_chunk, 1);
+  return rows == 0 ? 1 : (rows + per - 1) / per;
+}
+
+v1::QueryResponse ToChunk(const core::NeighborLists& lists, uint64_t index,
+                          uint64_t step, bool distances,
+                          uint32_t rows_per_chunk,
+                          const std::vector<uint64_t>* client_ids) {
+  const uint64_t rows = lists.num_queries();
+  const uint64_t per = std::max<uint32_t>(rows_per_chunk, 1);
+  const uint64_t first = index * per;
+  v1::QueryResponse r;
+  r.set_step(step);
+  r.set_first_row(first);
+  r.set_total_rows(rows);
+  if (rows == 0) {
+    r.add_offsets(0);
+    return r;
   }
-  return out;
+  const uint64_t last = std::min<uint64_t>(rows, first + per);
+  const uint64_t base = lists.offsets[first];
+  for (uint64_t i = first; i <= last; ++i) {
+    r.add_offsets(lists.offsets[i] - base);
+  }
+  const uint64_t end = lists.offsets[last];
+  if (client_ids != nullptr) {
+    for (uint64_t k = base; k < end; ++k) {
+      r.add_client_ids((*client_ids)[lists.ids[k]]);
+    }
+  } else {
+    r.mutable_ids()->Add(lists.ids.begin() + base, lists.ids.begin() + end);
+  }
+  if (distances) {
+    r.mutable_distances()->Add(lists.distances.begin() + base,
+                               lists.distances.begin() + end);
+  }
+  for (uint64_t i = first; i < last; ++i) {
+    if (lists.truncated[i]) r.add_truncated_rows(i - first);
+  }
+  return r;
 }
 
 }  // namespace kinetri::server

@@ -46,11 +46,15 @@ class StepAssembler {
 
 v1::StepStats ToProto(const core::StepReport& report);
 
-// Splits CSR rows [0, n) into response chunks of at most `rows_per_chunk`.
-// With client_ids, result ids are reported as the client's ids.
-std::vector<v1::QueryResponse> ToChunks(
-    const core::NeighborLists& lists, uint64_t step, bool distances,
-    uint32_t rows_per_chunk, const std::vector<uint64_t>* client_ids);
+// Number of response chunks of at most `rows_per_chunk` rows (at least one,
+// so that an empty answer still reports its step).
+uint64_t NumChunks(const core::NeighborLists& lists, uint32_t rows_per_chunk);
+// Chunk `index` of the CSR rows, built only when it is sent (the answer is
+// never held twice). With client_ids, result ids are the client's ids.
+v1::QueryResponse ToChunk(const core::NeighborLists& lists, uint64_t index,
+                          uint64_t step, bool distances,
+                          uint32_t rows_per_chunk,
+                          const std::vector<uint64_t>* client_ids);
 
 // Query targets of a PointIds message for `session` (sequential or client
 // ids, per its policy).

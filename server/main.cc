@@ -31,6 +31,11 @@ ABSL_FLAG(int, max_message_mb, 4,
           "largest gRPC message accepted, MiB (clients chunk to fit)");
 ABSL_FLAG(int, threads, 0,
           "worker threads per session on the CPU backend (0: all cores)");
+ABSL_FLAG(uint32_t, max_threads, 256,
+          "most worker threads a client may ask for in SessionOptions.threads");
+ABSL_FLAG(bool, reuse_port, false,
+          "let another process listen on the same port (SO_REUSEPORT); off: "
+          "a second server on an occupied port refuses to start");
 ABSL_FLAG(int, shutdown_grace_seconds, 10,
           "on SIGTERM/SIGINT: how long running calls may finish");
 ABSL_FLAG(double, drain_delay_seconds, 0.0,
@@ -56,6 +61,15 @@ int main(int argc, char** argv) {
   limits.max_points_per_session = absl::GetFlag(FLAGS_max_points);
   limits.max_query_results = absl::GetFlag(FLAGS_max_query_results);
   limits.default_threads = absl::GetFlag(FLAGS_threads);
+  limits.max_threads = absl::GetFlag(FLAGS_max_threads);
+  if (limits.default_threads < 0 || limits.max_threads < 1 ||
+      limits.max_threads > 4096 ||
+      static_cast<uint32_t>(limits.default_threads) > limits.max_threads) {
+    std::fprintf(stderr,
+                 "kinetri-server: --threads must be in [0, --max_threads] and "
+                 "--max_threads in [1, 4096]\n");
+    return 2;
+  }
   kinetri::server::SessionRegistry registry(limits);
   kinetri::server::Metrics metrics;
   const std::string metrics_addr = absl::GetFlag(FLAGS_metrics_listen);
@@ -78,12 +92,18 @@ int main(int argc, char** argv) {
   builder.AddListeningPort(absl::GetFlag(FLAGS_listen),
                            grpc::InsecureServerCredentials(), &port);
   const int max_bytes = absl::GetFlag(FLAGS_max_message_mb) * 1024 * 1024;
+  // gRPC sets SO_REUSEPORT by default: a second server on the same port
+  // would start and split the clients between two session sets.
+  builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT,
+                             absl::GetFlag(FLAGS_reuse_port) ? 1 : 0);
   builder.SetMaxReceiveMessageSize(max_bytes);
   builder.SetMaxSendMessageSize(max_bytes);
   builder.RegisterService(&service);
   std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
   if (!server || port == 0) {
-    std::fprintf(stderr, "kinetri-server: cannot listen on %s\n",
+    std::fprintf(stderr,
+                 "kinetri-server: cannot listen on %s (in use by another "
+                 "process? --reuse_port shares it)\n",
                  absl::GetFlag(FLAGS_listen).c_str());
     return 1;
   }

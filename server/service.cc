@@ -16,6 +16,17 @@ namespace {
 
 using Clock = std::chrono::steady_clock;
 
+// A call's deadline (system clock; far future when none) on the steady
+// clock the core's cancellation tokens use.
+Clock::time_point ToSteadyDeadline(std::chrono::system_clock::time_point d) {
+  const auto now_sys = std::chrono::system_clock::now();
+  if (d - now_sys > std::chrono::hours(24 * 365)) {
+    return Clock::time_point::max();
+  }
+  return Clock::now() +
+         std::chrono::duration_cast<Clock::duration>(d - now_sys);
+}
+
 grpc::Status ToGrpc(const absl::Status& s) {
   if (s.ok()) return grpc::Status::OK;
   return grpc::Status(static_cast<grpc::StatusCode>(s.code()),
@@ -120,7 +131,7 @@ grpc::Status KinetriServiceImpl::CreateSession(
   } else if (!ValidSessionId(id)) {
     return rpc.Done(
         grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                     absl::StrCat("header.session_id: \"", id,
+                     absl::StrCat("header.session_id: \"", EchoForError(id),
                                   "\" must match [a-z0-9-]{1,63}")));
   }
   if (header.options().backend() == v1::BACKEND_CUDA) {
@@ -195,6 +206,13 @@ grpc::Status KinetriServiceImpl::CreateSession(
     }
   }
   core::TriangulationOptions opt;
+  if (header.options().threads() > registry_->limits().max_threads) {
+    return rpc.Done(grpc::Status(
+        grpc::StatusCode::INVALID_ARGUMENT,
+        absl::StrCat("options.threads: ", header.options().threads(),
+                     " exceeds the limit of ", registry_->limits().max_threads,
+                     " (0 = the server's default)")));
+  }
   const uint32_t threads = header.options().threads()
                                ? header.options().threads()
                                : registry_->limits().default_threads;
@@ -363,8 +381,13 @@ grpc::Status KinetriServiceImpl::Query(
         grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                      "targets: set one of point_ids, positions, all_points"));
   }
+  // The query stops within milliseconds once the client cancels or its
+  // deadline passes (polled per row and inside long rows).
+  const core::CancelToken cancel([ctx] { return ctx->IsCancelled(); },
+                                 ToSteadyDeadline(ctx->deadline()));
   core::QueryLimits limits;
   limits.max_total_results = session.max_query_results();
+  limits.cancel = &cancel;
   const auto start = Clock::now();
   absl::StatusOr<core::NeighborLists> result;
   uint64_t step = 0;
@@ -422,13 +445,18 @@ grpc::Status KinetriServiceImpl::Query(
       std::chrono::duration<double>(Clock::now() - start).count());
   const uint32_t rows_per_chunk =
       req->rows_per_chunk() ? req->rows_per_chunk() : 16384;
-  for (auto& chunk :
-       ToChunks(*result, step, req->include_distances(), rows_per_chunk,
-                session.has_client_ids() ? &session.client_ids() : nullptr)) {
+  const uint64_t chunks = NumChunks(*result, rows_per_chunk);
+  for (uint64_t c = 0; c < chunks; ++c) {
     if (ctx->IsCancelled()) {
       return rpc.Done(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled"));
     }
-    if (!writer->Write(chunk)) break;
+    // Write blocks while the client does not read (flow control): a slow
+    // reader holds one chunk here, and no session lock.
+    if (!writer->Write(ToChunk(
+            *result, c, step, req->include_distances(), rows_per_chunk,
+            session.has_client_ids() ? &session.client_ids() : nullptr))) {
+      break;
+    }
   }
   return rpc.Done(grpc::Status::OK);
 }

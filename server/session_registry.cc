@@ -1,6 +1,7 @@
 // Sessions (one triangulation each) and the registry that owns them.
 #include "server/session_registry.h"
 
+#include "absl/strings/escaping.h"
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
@@ -45,13 +46,21 @@ bool ValidSessionId(const std::string& id) {
   return true;
 }
 
+std::string EchoForError(const std::string& value) {
+  constexpr size_t kMax = 80;
+  if (value.size() <= kMax) return absl::CHexEscape(value);
+  return absl::StrCat(absl::CHexEscape(value.substr(0, kMax)), "... (",
+                      value.size(), " bytes)");
+}
+
 absl::StatusOr<std::string> ParseSessionName(const std::string& name,
                                              const std::string& field) {
   constexpr absl::string_view kPrefix = "sessions/";
   if (!absl::StartsWith(name, kPrefix) ||
       !ValidSessionId(name.substr(kPrefix.size()))) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        field, ": \"", name, "\" is not a session name (sessions/{id})"));
+    return absl::InvalidArgumentError(
+        absl::StrCat(field, ": \"", EchoForError(name),
+                     "\" is not a session name (sessions/{id})"));
   }
   return name.substr(kPrefix.size());
 }

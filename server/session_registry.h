@@ -22,11 +22,29 @@ struct ServerLimits {
   uint64_t max_points_per_session = 50'000'000;
   uint64_t max_query_results = 200'000'000;
   int default_threads = 0;
+  // Most worker threads a session may ask for (SessionOptions.threads).
+  uint32_t max_threads = 256;
+};
+
+// A reader-writer lock that never starves writers: absl::Mutex blocks new
+// readers while a writer waits (std::shared_mutex on glibc prefers readers,
+// so a stream of queries could hold a step off indefinitely). Shaped for
+// std::unique_lock / std::shared_lock.
+class WriterPreferringMutex {
+ public:
+  void lock() ABSL_EXCLUSIVE_LOCK_FUNCTION() { mu_.WriterLock(); }
+  void unlock() ABSL_UNLOCK_FUNCTION() { mu_.WriterUnlock(); }
+  void lock_shared() ABSL_SHARED_LOCK_FUNCTION() { mu_.ReaderLock(); }
+  void unlock_shared() ABSL_UNLOCK_FUNCTION() { mu_.ReaderUnlock(); }
+
+ private:
+  absl::Mutex mu_;
 };
 
 // One session: its triangulation, step counter and metadata. Updates take
 // the lock exclusively (steps apply one at a time, atomically); queries take
-// it shared and run concurrently.
+// it shared and run concurrently. A waiting step keeps new queries out, so it
+// waits at most for the queries already running.
 class Session {
  public:
   // client_ids: empty for sequential ids, else one distinct id per point.
@@ -49,7 +67,7 @@ class Session {
   absl::StatusOr<uint32_t> IndexOf(uint64_t client_id,
                                    const std::string& field) const;
 
-  std::shared_mutex& mutex() { return mu_; }
+  WriterPreferringMutex& mutex() { return mu_; }
   // Guarded by mutex().
   core::Triangulation& tri() { return tri_; }
   uint64_t step() const { return step_; }
@@ -68,7 +86,7 @@ class Session {
   const uint64_t point_count_;
   const std::vector<uint64_t> client_ids_;
   absl::flat_hash_map<uint64_t, uint32_t> index_of_;
-  std::shared_mutex mu_;
+  WriterPreferringMutex mu_;
   core::Triangulation tri_;
   uint64_t step_ = 0;
   absl::Time update_time_;
@@ -105,6 +123,10 @@ class SessionRegistry {
 // "sessions/{id}" -> id, or INVALID_ARGUMENT naming `field`.
 absl::StatusOr<std::string> ParseSessionName(const std::string& name,
                                              const std::string& field);
+// A client's string as shown in an error message: escaped and cut to 80
+// bytes (a huge echo would turn the status itself into an oversized
+// trailer, and the client would see a metadata error instead).
+std::string EchoForError(const std::string& value);
 // Session ids: [a-z0-9-]{1,63}.
 bool ValidSessionId(const std::string& id);
 

@@ -88,8 +88,8 @@ TEST_P(BrownianTest, LocalRepairAloneStaysExactForLargeMotion) {
   const size_t n = 1500;
   const double spacing = 1.0 / std::sqrt(double(n));
   TriangulationOptions opt = testing::ExecutorOptions();
-  opt.rebuild_fraction = 1.0;
-  opt.max_passes = 64;
+  opt.round.rebuild_fraction = 1.0;
+  opt.round.max_passes = 64;
   opt.region.held_vertex_cost = 0.0;  // never rebuild by cost
   auto t = Triangulation::Create(testing::UniformPoints(n, 13), opt);
   ASSERT_TRUE(t.ok());
@@ -166,8 +166,8 @@ TEST(Kinetic, WholeStepSubdivision) {
   // The optional whole-step split (note §3.2) on top of the local sub-steps.
   const size_t n = 1500;
   TriangulationOptions opt = testing::ExecutorOptions();
-  opt.max_subdivision_depth = 2;
-  opt.rebuild_fraction = 1.0;
+  opt.round.max_subdivision_depth = 2;
+  opt.round.rebuild_fraction = 1.0;
   auto t = Triangulation::Create(testing::UniformPoints(n, 131), opt);
   ASSERT_TRUE(t.ok());
   std::mt19937_64 rng(132);

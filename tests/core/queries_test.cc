@@ -4,9 +4,14 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <atomic>
+#include <chrono>
 #include <cmath>
+#include <cstdio>
+#include <cstdlib>
 #include <numeric>
 #include <random>
+#include <thread>
 
 #include "core/predicates.h"
 #include "tests/core/test_util.h"
@@ -209,6 +214,129 @@ TEST(Queries, BadArguments) {
   limits.max_total_results = 10;
   EXPECT_EQ(WithinRadius(*t, q, 10.0, 0, limits).status().code(),
             absl::StatusCode::kResourceExhausted);
+}
+
+// The total limit stops the work while rows are built: a query whose
+// answer would be 10^8 results is refused after about the limit's worth.
+TEST(Queries, TotalLimitStopsTheWork) {
+  const auto pts = testing::UniformPoints(10000, 31);
+  auto t = Triangulation::Create(pts);
+  ASSERT_TRUE(t.ok());
+  std::vector<uint32_t> ids(pts.size());
+  std::iota(ids.begin(), ids.end(), 0u);
+  QueryLimits limits;
+  limits.max_total_results = 50000;
+  const auto t0 = std::chrono::steady_clock::now();
+  auto r = WithinRadiusOfPoints(*t, ids, 10.0, false, 0, limits);
+  const double s =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0)
+          .count();
+  EXPECT_EQ(r.status().code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_NE(r.status().message().find("50000"), std::string::npos);
+  // The whole answer (10^8 results) takes tens of seconds; the refusal
+  // builds at most a few rows of 10^4.
+  EXPECT_LT(s, 2.0);
+  // Exactly at the limit is allowed.
+  limits.max_total_results = 10000;
+  auto ok = WithinRadiusOfPoints(*t, std::vector<uint32_t>{1}, 10.0, false, 0,
+                                 limits);
+  ASSERT_TRUE(ok.ok()) << ok.status();
+  EXPECT_EQ(ok->ids.size(), 10000u);
+}
+
+// A cut radius row is the closest max_results points even when the disk
+// holds far more sites than that (computed by the bounded k-NN expansion).
+TEST(Queries, CutRadiusRowsOfHugeDisks) {
+  auto pts = testing::UniformPoints(6000, 32);
+  for (int i = 0; i < 50; ++i) pts.push_back(pts[i]);  // duplicates too
+  auto t = Triangulation::Create(pts);
+  ASSERT_TRUE(t.ok());
+  const auto qs = QueryPoints(pts, 40, 33);
+  for (bool closest_first : {true, false}) {
+    RowOptions rows;
+    rows.closest_first = closest_first;
+    auto r = WithinRadius(*t, qs, 0.7, 7, {}, rows);
+    ASSERT_TRUE(r.ok());
+    for (size_t i = 0; i < qs.size(); ++i) {
+      std::vector<uint32_t> want;
+      for (uint32_t id : BruteRank(pts, qs[i], kNoVertex)) {
+        if (CompareDistanceToRadius(qs[i], pts[id], 0.7) > 0) break;
+        want.push_back(id);
+      }
+      const bool cut = want.size() > 7;
+      if (cut) want.resize(7);
+      auto got = Row(*r, i);
+      if (!closest_first) std::sort(got.begin(), got.end());
+      if (!closest_first) std::sort(want.begin(), want.end());
+      EXPECT_EQ(got, want) << "query " << i;
+      EXPECT_EQ(r->truncated[i] != 0, cut) << "query " << i;
+    }
+  }
+}
+
+// Many coincident points: each query emits the first ids of the big site
+// instead of walking and sorting all of them (quadratic before: 200K
+// identical points, k = 2, all points ran for minutes).
+TEST(Queries, HugeSiteOfCoincidentPoints) {
+  std::vector<Vec2> pts(30000, Vec2{0.25, 0.5});
+  for (int i = 0; i < 10; ++i) pts.push_back({0.1 * i, 0.9 - 0.05 * i});
+  auto t = Triangulation::Create(pts);
+  ASSERT_TRUE(t.ok());
+  std::vector<uint32_t> ids(pts.size());
+  std::iota(ids.begin(), ids.end(), 0u);
+  auto r = KNearestOfPoints(*t, ids, 2, true);
+  ASSERT_TRUE(r.ok());
+  EXPECT_EQ(Row(*r, 0), (std::vector<uint32_t>{1, 2}));
+  EXPECT_EQ(Row(*r, 1), (std::vector<uint32_t>{0, 2}));
+  EXPECT_EQ(Row(*r, 29999), (std::vector<uint32_t>{0, 1}));
+  for (uint32_t i : {30000u, 30004u, 30009u}) {
+    const auto rank = BruteRank(pts, pts[i], i);
+    EXPECT_EQ(Row(*r, i),
+              std::vector<uint32_t>(rank.begin(), rank.begin() + 2));
+  }
+}
+
+// A cancelled or expired token stops a query with CANCELLED or
+// DEADLINE_EXCEEDED; a token that fires while the query runs stops it
+// promptly (the time from firing to return is measured).
+TEST(Queries, CancellationStopsTheWork) {
+  const auto pts = testing::UniformPoints(20000, 34);
+  auto t = Triangulation::Create(pts);
+  ASSERT_TRUE(t.ok());
+  std::vector<uint32_t> ids(pts.size());
+  std::iota(ids.begin(), ids.end(), 0u);
+  {
+    CancelToken cancelled([] { return true; });
+    QueryLimits limits;
+    limits.cancel = &cancelled;
+    EXPECT_EQ(KNearestOfPoints(*t, ids, 8, true, limits).status().code(),
+              absl::StatusCode::kCancelled);
+    CancelToken expired(nullptr, std::chrono::steady_clock::now());
+    limits.cancel = &expired;
+    EXPECT_EQ(
+        WithinRadiusOfPoints(*t, ids, 0.05, true, 0, limits).status().code(),
+        absl::StatusCode::kDeadlineExceeded);
+  }
+  // The whole answer (20000 rows of ~20000) takes far longer than the
+  // 100 ms after which the token fires.
+  std::atomic<bool> flag{false};
+  CancelToken token([&] { return flag.load(); });
+  QueryLimits limits;
+  limits.cancel = &token;
+  std::chrono::steady_clock::time_point fired;
+  std::thread canceller([&] {
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    fired = std::chrono::steady_clock::now();
+    flag = true;
+  });
+  auto r = WithinRadiusOfPoints(*t, ids, 10.0, true, 0, limits);
+  const auto done = std::chrono::steady_clock::now();
+  canceller.join();
+  EXPECT_EQ(r.status().code(), absl::StatusCode::kCancelled);
+  const double stop_ms =
+      std::chrono::duration<double, std::milli>(done - fired).count();
+  std::printf("query stopped %.1f ms after cancellation\n", stop_ms);
+  EXPECT_LT(stop_ms, 50.0 * (std::getenv("KINETRI_SLOW_MACHINE") ? 10 : 1));
 }
 
 }  // namespace

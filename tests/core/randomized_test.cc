@@ -30,8 +30,8 @@ void RunScenario(uint64_t seed) {
   const uint32_t region_sizes[] = {16, 64, 256, 1u << 20};
   opt.region.region_triangles = region_sizes[rng() % 4];
   if (rng() % 2) {  // exercise the local machinery on large steps too
-    opt.rebuild_fraction = 1.0;
-    opt.max_passes = 64;
+    opt.round.rebuild_fraction = 1.0;
+    opt.round.max_passes = 64;
     opt.region.held_vertex_cost = 0.0;
   }
   auto t = Triangulation::Create(pts, opt);

@@ -4,6 +4,8 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <cmath>
+#include <random>
 
 #include "tests/core/test_util.h"
 
@@ -75,6 +77,60 @@ TEST(Create, RejectsBadCoordinates) {
   t = Triangulation::Create({{0, 0}, {1e-200, 1}});
   EXPECT_EQ(t.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_NE(t.status().message().find("exact range"), std::string::npos);
+}
+
+TEST(Create, RejectsBadPolicies) {
+  const auto pts = testing::UniformPoints(50, 3);
+  std::vector<TriangulationOptions> bad(8);
+  bad[0].round.max_passes = 0;
+  bad[1].round.max_halvings = 31;
+  bad[2].round.rebuild_fraction = std::nan("");
+  bad[3].round.sparse_fraction = 1.5;
+  bad[4].round.max_subdivision_depth = 17;
+  bad[5].region.region_triangles = 8;
+  bad[6].region.max_passes = 0;
+  bad[7].num_threads = -1;
+  for (size_t i = 0; i < bad.size(); ++i) {
+    auto t = Triangulation::Create(pts, bad[i]);
+    ASSERT_FALSE(t.ok()) << i;
+    EXPECT_EQ(t.status().code(), absl::StatusCode::kInvalidArgument) << i;
+  }
+}
+
+// The round executor's pass limit is an option: before RoundStepPolicy a
+// hard-coded 64 capped it and made max_passes dead at its default.
+TEST(RoundPolicy, MaxPassesIsHonoured) {
+  const size_t n = 600;
+  const auto pts = testing::UniformPoints(n, 21);
+  std::mt19937_64 rng(5);
+  std::normal_distribution<double> g(0.0, 0.6 / std::sqrt(double(n)));
+  std::vector<Vec2> deltas(n);
+  for (auto& d : deltas) d = {g(rng), g(rng)};
+  std::vector<Vec2> moved(n);
+  for (size_t i = 0; i < n; ++i) {
+    moved[i] = {pts[i].x + deltas[i].x, pts[i].y + deltas[i].y};
+  }
+  for (int passes : {1, 200}) {
+    TriangulationOptions opt;
+    opt.executor = Executor::kRounds;
+    opt.round.rebuild_fraction = 1.0;
+    opt.round.reinsert_fraction = 1.0;
+    opt.round.max_passes = passes;
+    auto t = Triangulation::Create(pts, opt);
+    ASSERT_TRUE(t.ok());
+    auto r = t->ApplyDisplacements(DisplacementBatch::Dense(deltas));
+    ASSERT_TRUE(r.ok()) << r.status();
+    ASSERT_TRUE(t->Validate().ok());
+    EXPECT_EQ(EdgesAsPositions(*t), CgalDelaunayEdges(moved));
+    if (passes == 1) {
+      EXPECT_EQ(r->path, UpdatePath::kRebuilt);
+      EXPECT_NE(r->fallback_reason.find("after 1 passes"), std::string::npos)
+          << r->fallback_reason;
+    } else {
+      EXPECT_NE(r->path, UpdatePath::kRebuilt) << r->fallback_reason;
+      EXPECT_GT(r->failed_attempts + r->local_halvings, 0u);
+    }
+  }
 }
 
 }  // namespace

@@ -10,6 +10,7 @@
 
 #include <cstdio>
 #include <cstring>
+#include <string>
 
 namespace kinetri::testing {
 
@@ -69,6 +70,28 @@ void ServerProcess::Signal(int sig) {
 }
 
 ServerProcess::~ServerProcess() { Stop(); }
+
+double ServerProcess::CpuSeconds() const {
+  if (pid_ <= 0) return -1.0;
+  const std::string path = "/proc/" + std::to_string(pid_) + "/stat";
+  FILE* f = std::fopen(path.c_str(), "r");
+  if (!f) return -1.0;
+  char buf[4096];
+  const size_t k = std::fread(buf, 1, sizeof buf - 1, f);
+  std::fclose(f);
+  buf[k] = 0;
+  // Fields after the command name (which may hold spaces): state is field 3,
+  // utime and stime are fields 14 and 15.
+  const char* p = std::strrchr(buf, ')');
+  if (!p) return -1.0;
+  unsigned long long utime = 0, stime = 0;
+  if (std::sscanf(p + 2,
+                  "%*c %*d %*d %*d %*d %*d %*u %*u %*u %*u %*u %llu %llu",
+                  &utime, &stime) != 2) {
+    return -1.0;
+  }
+  return double(utime + stime) / double(sysconf(_SC_CLK_TCK));
+}
 
 std::string HttpGet(int port, const std::string& path) {
   const int fd = socket(AF_INET, SOCK_STREAM, 0);

@@ -22,6 +22,9 @@ class ServerProcess {
     return "127.0.0.1:" + std::to_string(grpc_port_);
   }
   int metrics_port() const { return metrics_port_; }
+  pid_t pid() const { return pid_; }
+  // CPU seconds (user + system) the server has used so far.
+  double CpuSeconds() const;
   // Sends SIGTERM and returns the exit status.
   int Stop();
   // Sends a signal without waiting.
