@@ -55,11 +55,7 @@ class E2eTest : public ::testing::Test {
     client_ = std::make_unique<Client>(server_->target(), /*chunk_points=*/700);
   }
   std::vector<double> Uniform(size_t n, uint64_t seed) {
-    std::mt19937_64 rng(seed);
-    std::uniform_real_distribution<double> u(0, 1);
-    std::vector<double> xy(2 * n);
-    for (double& v : xy) v = u(rng);
-    return xy;
+    return testing::UniformXY(n, seed);
   }
   std::unique_ptr<testing::ServerProcess> server_;
   std::unique_ptr<Client> client_;

@@ -8,7 +8,6 @@
 #include <atomic>
 #include <chrono>
 #include <cstdio>
-#include <random>
 #include <thread>
 #include <vector>
 
@@ -24,13 +23,7 @@ double MsSince(Clock::time_point t0) {
   return std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
 }
 
-std::vector<double> Uniform(size_t n, uint64_t seed) {
-  std::mt19937_64 rng(seed);
-  std::uniform_real_distribution<double> u(0, 1);
-  std::vector<double> xy(2 * n);
-  for (double& v : xy) v = u(rng);
-  return xy;
-}
+using testing::UniformXY;
 
 class HardeningTest : public ::testing::Test {
  protected:
@@ -67,7 +60,7 @@ TEST_F(HardeningTest, ThreadOptionIsBounded) {
 // own CPU time after the deadline).
 TEST_F(HardeningTest, DeadlineStopsAQuery) {
   const size_t n = 100000;
-  auto s = client_->CreateSession(Uniform(n, 1), v1::SessionOptions(), "dl");
+  auto s = client_->CreateSession(UniformXY(n, 1), v1::SessionOptions(), "dl");
   ASSERT_TRUE(s.ok()) << s.status();
   v1::QueryRequest q;
   q.set_session(s->name());
@@ -108,7 +101,8 @@ TEST(HardeningLimits, ResultLimitStopsTheWork) {
       {"--max_points=300000", "--max_query_results=1000000", "--threads=2"});
   ASSERT_TRUE(server.ok());
   Client client(server.target());
-  auto s = client.CreateSession(Uniform(100000, 2), v1::SessionOptions(), "l");
+  auto s =
+      client.CreateSession(UniformXY(100000, 2), v1::SessionOptions(), "l");
   ASSERT_TRUE(s.ok()) << s.status();
   v1::QueryRequest q;
   q.set_session(s->name());
@@ -129,7 +123,7 @@ TEST(HardeningLimits, ResultLimitStopsTheWork) {
 // (the reader-preferring lock let readers in ahead of it forever).
 TEST_F(HardeningTest, StepsAreNotStarvedByQueries) {
   const size_t n = 50000;
-  auto s = client_->CreateSession(Uniform(n, 3), v1::SessionOptions(), "st");
+  auto s = client_->CreateSession(UniformXY(n, 3), v1::SessionOptions(), "st");
   ASSERT_TRUE(s.ok()) << s.status();
   auto idle_steps = client_->OpenSteps(s->name());
   ASSERT_TRUE(idle_steps.ok());
@@ -139,17 +133,14 @@ TEST_F(HardeningTest, StepsAreNotStarvedByQueries) {
     ASSERT_TRUE((*idle_steps)->MoveBy({7}, {1e-4, 0}).ok());
     idle_ms.push_back(MsSince(t0));
   }
-  double alone_ms = 0;
-  {
-    v1::QueryRequest q;
-    q.set_session(s->name());
-    q.set_kind(v1::QUERY_KIND_K_NEAREST);
-    q.set_k(8);
-    q.mutable_all_points();
-    const auto t0 = Clock::now();
-    ASSERT_TRUE(client_->Query(q).ok());
-    alone_ms = MsSince(t0);
-  }
+  v1::QueryRequest knn8;  // k = 8 for every point
+  knn8.set_session(s->name());
+  knn8.set_kind(v1::QUERY_KIND_K_NEAREST);
+  knn8.set_k(8);
+  knn8.mutable_all_points();
+  const auto alone_t0 = Clock::now();
+  ASSERT_TRUE(client_->Query(knn8).ok());
+  const double alone_ms = MsSince(alone_t0);
   std::atomic<bool> stop{false};
   std::atomic<int> queries{0};
   double query_ms_max = 0;
@@ -159,13 +150,8 @@ TEST_F(HardeningTest, StepsAreNotStarvedByQueries) {
     readers.emplace_back([&] {
       Client c(server_->target());
       while (!stop) {
-        v1::QueryRequest q;
-        q.set_session(s->name());
-        q.set_kind(v1::QUERY_KIND_K_NEAREST);
-        q.set_k(8);
-        q.mutable_all_points();
         const auto t0 = Clock::now();
-        if (c.Query(q).ok()) ++queries;
+        if (c.Query(knn8).ok()) ++queries;
         std::lock_guard<std::mutex> lock(mu);
         query_ms_max = std::max(query_ms_max, MsSince(t0));
       }

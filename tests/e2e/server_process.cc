@@ -10,6 +10,7 @@
 
 #include <cstdio>
 #include <cstring>
+#include <random>
 #include <string>
 
 namespace kinetri::testing {
@@ -91,6 +92,14 @@ double ServerProcess::CpuSeconds() const {
     return -1.0;
   }
   return double(utime + stime) / double(sysconf(_SC_CLK_TCK));
+}
+
+std::vector<double> UniformXY(size_t n, uint64_t seed) {
+  std::mt19937_64 rng(seed);
+  std::uniform_real_distribution<double> u(0, 1);
+  std::vector<double> xy(2 * n);
+  for (double& v : xy) v = u(rng);
+  return xy;
 }
 
 std::string HttpGet(int port, const std::string& path) {

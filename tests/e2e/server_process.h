@@ -4,6 +4,8 @@
 
 #include <sys/types.h>
 
+#include <cstddef>
+#include <cstdint>
 #include <string>
 #include <vector>
 
@@ -35,6 +37,9 @@ class ServerProcess {
   int grpc_port_ = 0;
   int metrics_port_ = 0;
 };
+
+// n uniform random points in the unit square, packed x, y.
+std::vector<double> UniformXY(size_t n, uint64_t seed);
 
 // GET http://127.0.0.1:port/path; returns the body ("" on failure).
 std::string HttpGet(int port, const std::string& path);
