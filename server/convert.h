@@ -27,6 +27,8 @@ class StepAssembler {
   // Adds one chunk; the first chunk fixes mode and dense/sparse.
   absl::Status Add(const v1::StepRequest& chunk);
   bool empty() const { return chunks_ == 0; }
+  // Values (xy pairs) received so far for this step.
+  uint64_t size() const { return values_.size(); }
   uint64_t step() const { return step_; }
   // The assembled batch, with client ids resolved through `session`
   // (NOT_FOUND for an unknown one, INVALID_ARGUMENT for the wrong kind of

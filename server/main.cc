@@ -3,6 +3,7 @@
 #include <grpcpp/grpcpp.h>
 #include <grpcpp/health_check_service_interface.h>
 
+#include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <csignal>
@@ -33,6 +34,17 @@ ABSL_FLAG(int, threads, 0,
           "worker threads per session on the CPU backend (0: all cores)");
 ABSL_FLAG(uint32_t, max_threads, 256,
           "most worker threads a client may ask for in SessionOptions.threads");
+ABSL_FLAG(int, stream_idle_timeout_seconds, 600,
+          "cancel a step or creation stream that sends nothing for this long "
+          "(0: never); frees its thread and what it buffered");
+ABSL_FLAG(int, max_calls, 512,
+          "most calls served at once (each holds a server thread); more get "
+          "RESOURCE_EXHAUSTED");
+ABSL_FLAG(int, max_streams_per_connection, 100,
+          "most concurrent calls on one client connection (HTTP/2 streams)");
+ABSL_FLAG(int, keepalive_seconds, 60,
+          "ping idle connections this often; a peer that does not answer "
+          "within 20 s is dropped and its calls cancelled");
 ABSL_FLAG(bool, reuse_port, false,
           "let another process listen on the same port (SO_REUSEPORT); off: "
           "a second server on an occupied port refuses to start");
@@ -84,7 +96,9 @@ int main(int argc, char** argv) {
                 metrics_addr.c_str(), port);
   }
 
-  kinetri::server::KinetriServiceImpl service(&registry, &metrics);
+  kinetri::server::IdleWatchdog watchdog(std::chrono::seconds(
+      std::max(0, absl::GetFlag(FLAGS_stream_idle_timeout_seconds))));
+  kinetri::server::KinetriServiceImpl service(&registry, &metrics, &watchdog);
   grpc::EnableDefaultHealthCheckService(true);
   grpc::reflection::InitProtoReflectionServerBuilderPlugin();
   grpc::ServerBuilder builder;
@@ -96,6 +110,22 @@ int main(int argc, char** argv) {
   // would start and split the clients between two session sets.
   builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT,
                              absl::GetFlag(FLAGS_reuse_port) ? 1 : 0);
+  // Vanished clients: keepalive pings find dead connections, whose calls
+  // are then cancelled (and the core's loops stop).
+  const int keepalive_ms = absl::GetFlag(FLAGS_keepalive_seconds) * 1000;
+  if (keepalive_ms > 0) {
+    builder.AddChannelArgument(GRPC_ARG_KEEPALIVE_TIME_MS, keepalive_ms);
+    builder.AddChannelArgument(GRPC_ARG_KEEPALIVE_TIMEOUT_MS, 20000);
+    builder.AddChannelArgument(GRPC_ARG_KEEPALIVE_PERMIT_WITHOUT_CALLS, 1);
+  }
+  // Clients may ping at most every 10 s without data (more is abuse).
+  builder.AddChannelArgument(
+      GRPC_ARG_HTTP2_MIN_RECV_PING_INTERVAL_WITHOUT_DATA_MS, 10000);
+  builder.AddChannelArgument(GRPC_ARG_MAX_CONCURRENT_STREAMS,
+                             absl::GetFlag(FLAGS_max_streams_per_connection));
+  grpc::ResourceQuota quota("kinetri-server");
+  quota.SetMaxThreads(std::max(4, absl::GetFlag(FLAGS_max_calls)));
+  builder.SetResourceQuota(quota);
   builder.SetMaxReceiveMessageSize(max_bytes);
   builder.SetMaxSendMessageSize(max_bytes);
   builder.RegisterService(&service);

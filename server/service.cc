@@ -142,12 +142,14 @@ grpc::Status KinetriServiceImpl::CreateSession(
   }
   const bool client_ids =
       header.options().point_id_policy() == v1::POINT_ID_POLICY_CLIENT;
+  // Memory follows the points received, not the announced count (a client
+  // announcing 50M points and sending none holds nothing).
   std::vector<core::Vec2> points;
-  points.reserve(header.point_count());
   std::vector<uint64_t> ids;
-  if (client_ids) ids.reserve(header.point_count());
   uint64_t chunk = 0;
+  IdleWatchdog::Registration idle(watchdog_, ctx);
   while (reader->Read(&msg)) {
+    idle.Touch();
     if (ctx->IsCancelled()) {
       return rpc.Done(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled"));
     }
@@ -185,6 +187,12 @@ grpc::Status KinetriServiceImpl::CreateSession(
                                     header.point_count(), " points sent")));
     }
     ++chunk;
+  }
+  if (idle.timed_out()) {
+    return rpc.Done(grpc::Status(
+        grpc::StatusCode::CANCELLED,
+        "points: the client sent nothing for longer than the server's "
+        "--stream_idle_timeout_seconds; session not created"));
   }
   if (points.size() != header.point_count()) {
     return rpc.Done(grpc::Status(
@@ -290,7 +298,9 @@ grpc::Status KinetriServiceImpl::StreamSteps(
   std::shared_ptr<Session> session;
   StepAssembler assembler;
   v1::StepRequest req;
+  IdleWatchdog::Registration idle(watchdog_, ctx);
   while (stream->Read(&req)) {
+    idle.Touch();
     if (ctx->IsCancelled()) {
       return rpc.Done(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled"));
     }
@@ -311,6 +321,16 @@ grpc::Status KinetriServiceImpl::StreamSteps(
     }
     absl::Status st = assembler.Add(req);
     if (!st.ok()) return rpc.Done(ToGrpc(st));
+    // A step moves each point at most once: a stream that never ends its
+    // step cannot make the server buffer more than one step's worth.
+    if (assembler.size() > session->point_count()) {
+      return rpc.Done(grpc::Status(
+          grpc::StatusCode::INVALID_ARGUMENT,
+          absl::StrCat("step ", assembler.step(), ": more than ",
+                       session->point_count(),
+                       " values (the session's point count) before "
+                       "end_of_step; not applied")));
+    }
     if (!req.end_of_step()) continue;
     const uint64_t step = assembler.step();
     absl::StatusOr<core::DisplacementBatch> batch = assembler.Take(*session);
@@ -332,6 +352,14 @@ grpc::Status KinetriServiceImpl::StreamSteps(
       *resp.mutable_stats() = ToProto(*report);
     }
     if (!stream->Write(resp)) break;  // client went away; step is applied
+  }
+  if (idle.timed_out()) {
+    return rpc.Done(grpc::Status(
+        grpc::StatusCode::CANCELLED,
+        absl::StrCat(
+            "the client sent nothing for longer than the server's "
+            "--stream_idle_timeout_seconds",
+            assembler.empty() ? "" : "; the open step was not applied")));
   }
   if (!assembler.empty()) {
     // The stream ended inside a step: it was never applied.

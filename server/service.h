@@ -6,6 +6,7 @@
 #include <string>
 
 #include "kinetri/v1/kinetri.grpc.pb.h"
+#include "server/idle_watchdog.h"
 #include "server/metrics.h"
 #include "server/session_registry.h"
 
@@ -13,8 +14,10 @@ namespace kinetri::server {
 
 class KinetriServiceImpl final : public v1::KinetriService::Service {
  public:
-  KinetriServiceImpl(SessionRegistry* registry, Metrics* metrics)
-      : registry_(registry), metrics_(metrics) {}
+  // `watchdog` cancels step and creation streams that stop sending.
+  KinetriServiceImpl(SessionRegistry* registry, Metrics* metrics,
+                     IdleWatchdog* watchdog)
+      : registry_(registry), metrics_(metrics), watchdog_(watchdog) {}
 
   grpc::Status CreateSession(
       grpc::ServerContext* ctx,
@@ -44,6 +47,7 @@ class KinetriServiceImpl final : public v1::KinetriService::Service {
 
   SessionRegistry* registry_;
   Metrics* metrics_;
+  IdleWatchdog* watchdog_;
 };
 
 }  // namespace kinetri::server

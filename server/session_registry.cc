@@ -1,12 +1,20 @@
 // Sessions (one triangulation each) and the registry that owns them.
 #include "server/session_registry.h"
 
+#include <malloc.h>
+
 #include "absl/strings/escaping.h"
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 
 namespace kinetri::server {
+
+Session::ReturnMemoryOnDestroy::~ReturnMemoryOnDestroy() {
+#if defined(__GLIBC__)
+  malloc_trim(0);
+#endif
+}
 
 Session::Session(std::string id, core::Triangulation tri, std::string backend,
                  uint64_t max_query_results, uint32_t threads,

@@ -78,6 +78,13 @@ class Session {
   absl::Time update_time() const { return update_time_; }
 
  private:
+  // Declared first, destroyed last: once the triangulation's memory is
+  // freed, give the freed pages back to the system (glibc keeps large
+  // freed blocks in its heap otherwise, and a deleted 1M-point session
+  // returned nothing to the OS).
+  struct ReturnMemoryOnDestroy {
+    ~ReturnMemoryOnDestroy();
+  } return_memory_;
   const std::string id_;
   const std::string backend_;
   const uint64_t max_query_results_;
