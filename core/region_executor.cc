@@ -344,7 +344,7 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
                         for (size_t r = range.begin(); r != range.end(); ++r) {
                           Region& g = regions_[r];
                           g.ClearWork();
-                          if (g.invalid.empty()) continue;
+                          if (g.invalid.empty() || Cancelled()) continue;
                           g.stack.assign(g.invalid.rbegin(), g.invalid.rend());
                           const Bounds b{static_cast<uint32_t>(r * rt),
                                          static_cast<uint32_t>(std::min<size_t>(
@@ -354,6 +354,10 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
                                         nullptr);
                         }
                       });
+    if (Cancelled()) {
+      *reason = "cancelled";
+      return false;
+    }
     // The serial pass: boundary elements and region-stuck triangles.
     serial.ClearWork();
     for (Region& g : regions_) {
@@ -539,8 +543,16 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
                           const RegionStepPolicy& policy,
                           RegionStepStats* stats,
                           std::vector<uint32_t>* removed,
-                          std::vector<uint32_t>* hints, std::string* reason) {
+                          std::vector<uint32_t>* hints, std::string* reason,
+                          const CancelToken* cancel) {
   auto t0 = std::chrono::steady_clock::now();
+  cancel_ = cancel;
+  auto stop = [&](bool mutated) {
+    stats->cancelled = true;
+    stats->mutated = mutated;
+    *reason = "cancelled";
+    return false;
+  };
   from_ = &from;
   to_ = &to;
   const uint32_t n = static_cast<uint32_t>(to.size());
@@ -568,6 +580,7 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
     tbb::parallel_for(tbb::blocked_range<size_t>(0, num_regions, 1),
                       [&](const tbb::blocked_range<size_t>& range) {
                         for (size_t r = range.begin(); r != range.end(); ++r) {
+                          if (Cancelled()) return;
                           Region& g = regions_[r];
                           const uint32_t lo = static_cast<uint32_t>(r * rt);
                           const uint32_t hi = static_cast<uint32_t>(
@@ -587,6 +600,7 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
       }
     }
   }
+  if (Cancelled()) return stop(false);
   // 2. Hold back the culprits of triangles no flip can repair.
   {
     std::vector<uint32_t> all_invalid;
@@ -630,9 +644,11 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
   stats->scan_seconds += SecondsSince(t0);
   t0 = std::chrono::steady_clock::now();
 
+  if (Cancelled()) return stop(false);
   // 3. Fix.
   if (!DenseFix(mesh, moved, pol, stats, reason)) {
     stats->fix_seconds += SecondsSince(t0);
+    if (Cancelled()) return stop(true);
     return false;
   }
   stats->fix_seconds += SecondsSince(t0);
@@ -645,6 +661,7 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
     tbb::parallel_for(tbb::blocked_range<size_t>(0, num_regions, 1),
                       [&](const tbb::blocked_range<size_t>& range) {
                         for (size_t r = range.begin(); r != range.end(); ++r) {
+                          if (Cancelled()) return;
                           Region& g = regions_[r];
                           g.ClearWork();
                           const uint32_t lo = static_cast<uint32_t>(r * rt);
@@ -661,6 +678,7 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
                                              tri_mark_.data(), nullptr);
                         }
                       });
+    if (Cancelled()) return stop(true);
     Region serial;
     for (Region& g : regions_) {
       serial.stack.insert(serial.stack.end(), g.deferred.rbegin(),
@@ -700,7 +718,10 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
 
   // 5. Held vertices move alone; the ones that cannot are removed.
   stats->held = static_cast<uint32_t>(held_list_.size());
-  for (uint32_t v : held_list_) {
+  if (Cancelled()) return stop(true);
+  for (size_t i = 0; i < held_list_.size(); ++i) {
+    if (i % 64 == 63 && Cancelled()) return stop(true);
+    const uint32_t v = held_list_[i];
     if (MoveHeld(mesh, v, to[v], pol, stats)) continue;
     const uint32_t e = mesh.vertex_edge()[v];
     (*hints)[v] = mesh.view().Dest(e);

@@ -32,6 +32,7 @@
 #include <string>
 #include <vector>
 
+#include "core/cancel.h"
 #include "core/hull.h"
 #include "core/kinetic.h"
 #include "core/mesh.h"
@@ -71,6 +72,10 @@ struct RegionStepStats {
   double fix_seconds = 0.0;
   double legalize_seconds = 0.0;
   double held_seconds = 0.0;
+  // The step stopped because its cancellation token fired; `mutated`: the
+  // mesh had been changed already (the caller must restore it).
+  bool cancelled = false;
+  bool mutated = false;
 };
 
 class RegionExecutor {
@@ -83,12 +88,14 @@ class RegionExecutor {
   // out because their motion could not be repaired locally, each with a
   // neighbour in `hints` (indexed by vertex) to start locating it. Returns
   // false (with `reason`) when the step should be rebuilt instead; the mesh
-  // is then valid for some mix of positions only.
+  // is then valid for some mix of positions only. `cancel` (optional) is
+  // polled per region and per held vertex; when it fires the step returns
+  // false with stats->cancelled set.
   bool Step(Mesh& mesh, const std::vector<Vec2>& from,
             const std::vector<Vec2>& to, const std::vector<uint32_t>& moved,
             const RegionStepPolicy& policy, RegionStepStats* stats,
             std::vector<uint32_t>* removed, std::vector<uint32_t>* hints,
-            std::string* reason);
+            std::string* reason, const CancelToken* cancel = nullptr);
 
   // Serial stack versions of the fixing and legalizing loops (same contract
   // as KineticExecutor::Fix / Legalize, hull check included), for small
@@ -122,6 +129,10 @@ class RegionExecutor {
   bool MoveHeld(Mesh& mesh, uint32_t v, const Vec2& target,
                 const RegionStepPolicy& policy, RegionStepStats* stats);
 
+  // The token fired (polled at most once per region or held vertex).
+  bool Cancelled() const { return cancel_ != nullptr && cancel_->Cancelled(); }
+
+  const CancelToken* cancel_ = nullptr;
   const std::vector<Vec2>* from_ = nullptr;
   const std::vector<Vec2>* to_ = nullptr;
   std::vector<Vec2> cur_;      // positions the mesh is repaired for

@@ -503,7 +503,8 @@ bool Triangulation::InsertBatch(std::vector<uint32_t> pending,
 
 bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
                                 const std::vector<uint32_t>& moved_points,
-                                StepReport* report, std::string* reason) {
+                                const CancelToken* cancel, StepReport* report,
+                                std::string* reason, int* cancelled) {
   const uint32_t n = size();
   // 1. Coincident points that part from their site are detached and
   //    inserted again at the end.
@@ -529,6 +530,11 @@ bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
     for (uint32_t p = v; p != kNoVertex; p = dup_next_[p]) goal[p] = g;
   };
   for (int attempt = 0;; ++attempt) {
+    if (cancel != nullptr && cancel->Cancelled()) {
+      *cancelled = attempt == 0 && reinsert.empty() ? 1 : 2;
+      *reason = "cancelled";
+      return false;
+    }
     std::vector<uint32_t> moved;
     for (uint32_t i : active) {
       if (rep_[i] == i && ve[i] != kNoEdge && goal[i] != pos_[i]) {
@@ -762,7 +768,8 @@ bool Triangulation::FinishLocalStep(std::vector<Vec2>& next,
 
 bool Triangulation::RegionUpdate(std::vector<Vec2>& next,
                                  const std::vector<uint32_t>& moved_points,
-                                 StepReport* report, std::string* reason) {
+                                 const CancelToken* cancel, StepReport* report,
+                                 std::string* reason, int* cancelled) {
   const uint32_t n = size();
   std::vector<uint32_t> reinsert = DetachPartingPoints(next);
   const auto& ve = mesh_.vertex_edge();
@@ -779,7 +786,10 @@ bool Triangulation::RegionUpdate(std::vector<Vec2>& next,
   const bool ok =
       moved.empty() ||
       region_executor_.Step(mesh_, pos_, next, moved, options_.region, &stats,
-                            &removed, &hints, reason);
+                            &removed, &hints, reason, cancel);
+  if (stats.cancelled) {
+    *cancelled = stats.mutated || !reinsert.empty() ? 2 : 1;
+  }
   report->flips += stats.flips;
   report->held_vertices = stats.held;
   report->local_halvings = stats.halvings;
@@ -796,7 +806,7 @@ bool Triangulation::RegionUpdate(std::vector<Vec2>& next,
 }
 
 absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
-    const DisplacementBatch& batch) {
+    const DisplacementBatch& batch, const CancelToken* cancel) {
   const auto start = std::chrono::steady_clock::now();
   const uint32_t n = size();
   const bool dense = batch.ids.empty();
@@ -882,8 +892,11 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
     moved = FilterIndices(n, [&](size_t i) { return next[i] != pos_[i]; });
   });
   report.moved_points = static_cast<uint32_t>(moved.size());
-  ++steps_;
+  if (cancel != nullptr) {
+    if (absl::Status s = cancel->Check("step"); !s.ok()) return s;
+  }
   if (moved.empty()) {
+    ++steps_;
     report.num_sites = num_sites();
     return report;
   }
@@ -892,6 +905,7 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
     adjacency_->valid = false;
   }
 
+  int cancelled = 0;
   Run([&] {
     std::string reason;
     bool ok = false;
@@ -899,9 +913,18 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
       reason = "fewer than two dimensions (line mode)";
     } else {
       ok = options_.executor == Executor::kRegions
-               ? RegionUpdate(next, moved, &report, &reason)
-               : LocalUpdate(next, moved, &report, &reason);
+               ? RegionUpdate(next, moved, cancel, &report, &reason, &cancelled)
+               : LocalUpdate(next, moved, cancel, &report, &reason, &cancelled);
     }
+    if (cancelled == 2) {
+      // Back to the previous step: positions (pos_) are unchanged; the
+      // mesh and the coincident-point chains are rebuilt from them.
+      std::vector<Vec2> by_ext(n);
+      for (uint32_t i = 0; i < n; ++i) by_ext[ext_of_int_[i]] = pos_[i];
+      Rebuild(by_ext);
+    }
+    if (cancelled) return;
+    ++steps_;
     if (ok) {
       report.path = report.reinserted > 0 ? UpdatePath::kReinserted
                     : report.substeps > 1 ? UpdatePath::kSubdivided
@@ -921,6 +944,7 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
       report.renumbered = true;
     }
   });
+  if (cancelled) return cancel->Check("step");  // fired, so not OK
   report.num_sites = num_sites();
   report.seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - start)

@@ -45,6 +45,7 @@
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "absl/types/span.h"
+#include "core/cancel.h"
 #include "core/kinetic.h"
 #include "core/mesh.h"
 #include "core/region_executor.h"
@@ -123,8 +124,16 @@ class Triangulation {
   Triangulation& operator=(Triangulation&&) noexcept;
   ~Triangulation();
 
-  // Moves the points. On error nothing changes.
-  absl::StatusOr<StepReport> ApplyDisplacements(const DisplacementBatch& batch);
+  // Moves the points. On error nothing changes. `cancel` (optional) is
+  // polled while the step runs; when it fires the step stops and returns
+  // CANCELLED / DEADLINE_EXCEEDED with the triangulation exactly as before
+  // the call (same positions, same Delaunay triangulation, same step
+  // count). Stopping during the scan costs nothing; once flips have begun
+  // the previous triangulation is rebuilt from the unchanged positions.
+  absl::StatusOr<StepReport> ApplyDisplacements(
+      const DisplacementBatch& batch, const CancelToken* cancel = nullptr);
+  // Steps applied so far (successful ApplyDisplacements calls).
+  uint64_t steps() const { return steps_; }
 
   // Checks topology, orientation, hull and the empty-circle property of every
   // edge exactly; also the point/site bookkeeping.
@@ -182,13 +191,17 @@ class Triangulation {
                        std::vector<uint32_t>& hints, StepReport* report,
                        std::string* reason);
   // Kinetic path of the region executor; false (with reason): rebuild.
+  // *cancelled: 0 ran to the end, 1 stopped by `cancel` with nothing
+  // changed, 2 stopped after changing the mesh (restore it).
   bool RegionUpdate(std::vector<Vec2>& next,
                     const std::vector<uint32_t>& moved_points,
-                    StepReport* report, std::string* reason);
+                    const CancelToken* cancel, StepReport* report,
+                    std::string* reason, int* cancelled);
   // Kinetic path of the round executor; false (with reason): rebuild.
   bool LocalUpdate(std::vector<Vec2>& next,
                    const std::vector<uint32_t>& moved_points,
-                   StepReport* report, std::string* reason);
+                   const CancelToken* cancel, StepReport* report,
+                   std::string* reason, int* cancelled);
   // Inserts the points (at pos_) into the mesh in rounds: locate all in
   // parallel, split one point per triangle, fix and legalize together.
   bool InsertBatch(std::vector<uint32_t> pending,

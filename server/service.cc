@@ -344,7 +344,11 @@ grpc::Status KinetriServiceImpl::StreamSteps(
             absl::StrCat("step: got ", step, ", expected ", session->step() + 1,
                          " (steps apply in order)")));
       }
-      auto report = session->tri().ApplyDisplacements(*batch);
+      // A client that cancels (or whose deadline passes) mid-step stops it;
+      // the session stays at its previous step.
+      const core::CancelToken cancel([ctx] { return ctx->IsCancelled(); },
+                                     ToSteadyDeadline(ctx->deadline()));
+      auto report = session->tri().ApplyDisplacements(*batch, &cancel);
       if (!report.ok()) return rpc.Done(ToGrpc(report.status()));
       session->set_step(step);
       metrics_->ObserveStep(session->backend(), *report);

@@ -1,7 +1,9 @@
 // Motion sequences: after every step the mesh is valid and equals CGAL's DT.
 #include <gtest/gtest.h>
 
+#include <chrono>
 #include <cmath>
+#include <cstdio>
 #include <functional>
 #include <random>
 #include <string>
@@ -368,6 +370,47 @@ TEST(Kinetic, BadInputIsRejectedAndChangesNothing) {
       DisplacementBatch::AbsoluteSparse({3}, {{1e40, 0}}));
   EXPECT_EQ(r.status().code(), absl::StatusCode::kInvalidArgument);
   expect_unchanged();
+}
+
+// A step whose cancellation token fires at any of its polls stops with
+// CANCELLED and leaves the triangulation exactly as before (positions, step
+// count, Delaunay triangulation); the same step then applies normally.
+TEST(Kinetic, CancelledStepLeavesThePreviousStep) {
+  const size_t n = 1500;
+  auto pts = testing::WithDuplicates(n, 3, 121);
+  auto t = Triangulation::Create(pts, testing::ExecutorOptions());
+  ASSERT_TRUE(t.ok());
+  std::mt19937_64 rng(122);
+  const double spacing = 1.0 / std::sqrt(double(pts.size()));
+  const DisplacementBatch step = Brownian(pts.size(), 0.3 * spacing, rng);
+  const auto before = t->Positions();
+  const auto before_edges = CgalDelaunayEdges(before);
+  int fired_at = -1;
+  for (int k = 0; k < 100000; ++k) {
+    int polls = 0;
+    CancelToken token([&] { return ++polls > k; });
+    auto r = t->ApplyDisplacements(step, &token);
+    if (r.ok()) {
+      fired_at = k;
+      break;
+    }
+    ASSERT_EQ(r.status().code(), absl::StatusCode::kCancelled) << r.status();
+    ASSERT_EQ(t->steps(), 0u) << "k = " << k;
+    ASSERT_EQ(t->Positions(), before) << "k = " << k;
+    ASSERT_TRUE(t->Validate().ok()) << "k = " << k;
+    ASSERT_EQ(EdgesAsPositions(*t), before_edges) << "k = " << k;
+  }
+  // The step polled its token several times before finishing (the region
+  // executor per region of 256 triangles, the round executor per pass).
+  std::printf("step finished with its token polled %d times\n", fired_at);
+  ASSERT_GT(fired_at, testing::kRegionExecutor ? 20 : 1);
+  EXPECT_EQ(t->steps(), 1u);
+  EXPECT_TRUE(t->Validate().ok());
+  EXPECT_EQ(EdgesAsPositions(*t), CgalDelaunayEdges(t->Positions()));
+  CancelToken expired(nullptr, std::chrono::steady_clock::now());
+  auto r = t->ApplyDisplacements(step, &expired);
+  EXPECT_EQ(r.status().code(), absl::StatusCode::kDeadlineExceeded);
+  EXPECT_EQ(t->steps(), 1u);
 }
 
 // Regression (issue 13): two points that move onto the same empty position in
