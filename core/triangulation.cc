@@ -169,6 +169,28 @@ absl::StatusOr<Triangulation> Triangulation::Create(
   return t;
 }
 
+Triangulation Triangulation::Clone() const {
+  Triangulation t;
+  t.options_ = options_;
+  t.adjacency_ = std::make_unique<AdjacencyCache>();
+  t.arena_ = options_.num_threads > 0
+                 ? std::make_unique<tbb::task_arena>(options_.num_threads)
+                 : std::make_unique<tbb::task_arena>();
+  t.pos_ = pos_;
+  t.ext_of_int_ = ext_of_int_;
+  t.int_of_ext_ = int_of_ext_;
+  t.rep_ = rep_;
+  t.dup_next_ = dup_next_;
+  t.has_duplicates_ = has_duplicates_;
+  t.sites_ = sites_;
+  t.mesh_ = mesh_;
+  t.line_ = line_;
+  t.line_rank_ = line_rank_;
+  t.baseline_span_ = baseline_span_;
+  t.steps_ = steps_;
+  return t;
+}
+
 std::vector<Vec2> Triangulation::Positions() const {
   std::vector<Vec2> out(pos_.size());
   for (size_t i = 0; i < pos_.size(); ++i) out[ext_of_int_[i]] = pos_[i];

@@ -132,6 +132,11 @@ class Triangulation {
   // the previous triangulation is rebuilt from the unchanged positions.
   absl::StatusOr<StepReport> ApplyDisplacements(
       const DisplacementBatch& batch, const CancelToken* cancel = nullptr);
+  // An independent copy (same points, ids, mesh, options and step count;
+  // its own thread arena and scratch). Costs a copy of the arrays: about
+  // 100 bytes per point. Lets readers keep an immutable snapshot while a
+  // writer moves a copy.
+  Triangulation Clone() const;
   // Steps applied so far (successful ApplyDisplacements calls).
   uint64_t steps() const { return steps_; }
 

@@ -148,28 +148,19 @@ v1::StepStats ToProto(const core::StepReport& r) {
   return s;
 }
 
-uint64_t NumChunks(const core::NeighborLists& lists, uint32_t rows_per_chunk) {
-  const uint64_t rows = lists.num_queries();
-  const uint64_t per = std::max<uint32_t>(rows_per_chunk, 1);
-  return rows == 0 ? 1 : (rows + per - 1) / per;
-}
-
-v1::QueryResponse ToChunk(const core::NeighborLists& lists, uint64_t index,
-                          uint64_t step, bool distances,
-                          uint32_t rows_per_chunk,
+v1::QueryResponse ToChunk(const core::NeighborLists& lists, uint64_t first,
+                          uint64_t count, uint64_t global_first,
+                          uint64_t total_rows, uint64_t step, bool distances,
                           const std::vector<uint64_t>* client_ids) {
-  const uint64_t rows = lists.num_queries();
-  const uint64_t per = std::max<uint32_t>(rows_per_chunk, 1);
-  const uint64_t first = index * per;
   v1::QueryResponse r;
   r.set_step(step);
-  r.set_first_row(first);
-  r.set_total_rows(rows);
-  if (rows == 0) {
+  r.set_first_row(global_first + first);
+  r.set_total_rows(total_rows);
+  if (count == 0) {
     r.add_offsets(0);
     return r;
   }
-  const uint64_t last = std::min<uint64_t>(rows, first + per);
+  const uint64_t last = first + count;
   const uint64_t base = lists.offsets[first];
   for (uint64_t i = first; i <= last; ++i) {
     r.add_offsets(lists.offsets[i] - base);

@@ -48,14 +48,13 @@ class StepAssembler {
 
 v1::StepStats ToProto(const core::StepReport& report);
 
-// Number of response chunks of at most `rows_per_chunk` rows (at least one,
-// so that an empty answer still reports its step).
-uint64_t NumChunks(const core::NeighborLists& lists, uint32_t rows_per_chunk);
-// Chunk `index` of the CSR rows, built only when it is sent (the answer is
-// never held twice). With client_ids, result ids are the client's ids.
-v1::QueryResponse ToChunk(const core::NeighborLists& lists, uint64_t index,
-                          uint64_t step, bool distances,
-                          uint32_t rows_per_chunk,
+// One response chunk: rows [first, first + count) of `lists`, which hold
+// the rows from `global_first` on of an answer of `total_rows` rows. Built
+// only when it is sent (the answer is never held twice). With client_ids,
+// result ids are the client's ids.
+v1::QueryResponse ToChunk(const core::NeighborLists& lists, uint64_t first,
+                          uint64_t count, uint64_t global_first,
+                          uint64_t total_rows, uint64_t step, bool distances,
                           const std::vector<uint64_t>* client_ids);
 
 // Query targets of a PointIds message for `session` (sequential or client

@@ -1,9 +1,8 @@
 // gRPC implementation of kinetri.v1.KinetriService over the core.
 #include "server/service.h"
 
+#include <algorithm>
 #include <chrono>
-#include <mutex>
-#include <shared_mutex>
 
 #include "absl/container/flat_hash_map.h"
 #include "absl/strings/numbers.h"
@@ -84,14 +83,14 @@ google::protobuf::Timestamp ToTimestamp(absl::Time t) {
   return ts;
 }
 
-// Caller holds the session lock (shared or exclusive).
-v1::Session Describe(Session& s) {
+v1::Session Describe(const Session& s) {
+  const Session::Snapshot snap = s.Read();
   v1::Session out;
   out.set_name(s.name());
   out.set_backend(s.backend());
   out.set_point_count(s.point_count());
-  out.set_site_count(s.tri().num_sites());
-  out.set_step(s.step());
+  out.set_site_count(snap.tri->num_sites());
+  out.set_step(snap.step);
   out.mutable_options()->set_backend(s.backend() == "cuda" ? v1::BACKEND_CUDA
                                                            : v1::BACKEND_CPU);
   out.mutable_options()->set_threads(s.threads());
@@ -100,7 +99,7 @@ v1::Session Describe(Session& s) {
                          : v1::POINT_ID_POLICY_SEQUENTIAL);
   out.mutable_options()->set_max_query_results(s.max_query_results());
   *out.mutable_create_time() = ToTimestamp(s.create_time());
-  *out.mutable_update_time() = ToTimestamp(s.update_time());
+  *out.mutable_update_time() = ToTimestamp(snap.update_time);
   return out;
 }
 
@@ -236,10 +235,7 @@ grpc::Status KinetriServiceImpl::CreateSession(
       id, std::move(*tri), "cpu", max_results, threads, std::move(ids));
   auto added = registry_->Add(session);
   if (!added.ok()) return rpc.Done(ToGrpc(added.status()));
-  {
-    std::shared_lock lock((*added)->mutex());
-    *response = Describe(**added);
-  }
+  *response = Describe(**added);
   UpdateGauges();
   return rpc.Done(grpc::Status::OK);
 }
@@ -250,7 +246,6 @@ grpc::Status KinetriServiceImpl::GetSession(grpc::ServerContext*,
   RpcScope rpc(metrics_, "GetSession", "unary");
   auto s = registry_->Get(req->name());
   if (!s.ok()) return rpc.Done(ToGrpc(s.status()));
-  std::shared_lock lock((*s)->mutex());
   *response = Describe(**s);
   return rpc.Done(grpc::Status::OK);
 }
@@ -273,7 +268,6 @@ grpc::Status KinetriServiceImpl::ListSessions(
   }
   auto list = registry_->List(after, page + 1);
   for (size_t i = 0; i < list.size() && i < page; ++i) {
-    std::shared_lock lock(list[i]->mutex());
     *response->add_sessions() = Describe(*list[i]);
   }
   if (list.size() > page) {
@@ -336,25 +330,15 @@ grpc::Status KinetriServiceImpl::StreamSteps(
     absl::StatusOr<core::DisplacementBatch> batch = assembler.Take(*session);
     if (!batch.ok()) return rpc.Done(ToGrpc(batch.status()));
     v1::StepResponse resp;
-    {
-      std::unique_lock lock(session->mutex());
-      if (step != session->step() + 1) {
-        return rpc.Done(grpc::Status(
-            grpc::StatusCode::FAILED_PRECONDITION,
-            absl::StrCat("step: got ", step, ", expected ", session->step() + 1,
-                         " (steps apply in order)")));
-      }
-      // A client that cancels (or whose deadline passes) mid-step stops it;
-      // the session stays at its previous step.
-      const core::CancelToken cancel([ctx] { return ctx->IsCancelled(); },
-                                     ToSteadyDeadline(ctx->deadline()));
-      auto report = session->tri().ApplyDisplacements(*batch, &cancel);
-      if (!report.ok()) return rpc.Done(ToGrpc(report.status()));
-      session->set_step(step);
-      metrics_->ObserveStep(session->backend(), *report);
-      resp.set_step(step);
-      *resp.mutable_stats() = ToProto(*report);
-    }
+    // A client that cancels (or whose deadline passes) mid-step stops it;
+    // the session stays at its previous step.
+    const core::CancelToken cancel([ctx] { return ctx->IsCancelled(); },
+                                   ToSteadyDeadline(ctx->deadline()));
+    auto report = session->ApplyStep(step, *batch, &cancel);
+    if (!report.ok()) return rpc.Done(ToGrpc(report.status()));
+    metrics_->ObserveStep(session->backend(), *report);
+    resp.set_step(step);
+    *resp.mutable_stats() = ToProto(*report);
     if (!stream->Write(resp)) break;  // client went away; step is applied
   }
   if (idle.timed_out()) {
@@ -420,76 +404,115 @@ grpc::Status KinetriServiceImpl::Query(
   core::QueryLimits limits;
   limits.max_total_results = session.max_query_results();
   limits.cancel = &cancel;
-  const auto start = Clock::now();
-  absl::StatusOr<core::NeighborLists> result;
-  uint64_t step = 0;
+  // The current step, immutable while this call holds it: no lock is held
+  // while rows are computed or streamed, and steps never wait for them.
+  const Session::Snapshot snap = session.Read();
+  const core::Triangulation& t = *snap.tri;
+  std::vector<uint32_t> ids;
+  if (req->has_all_points()) {
+    ids.resize(t.size());
+    for (uint32_t i = 0; i < t.size(); ++i) ids[i] = i;
+  } else if (req->has_point_ids()) {
+    auto resolved = ResolvePointIds(req->point_ids(), session);
+    if (!resolved.ok()) return rpc.Done(ToGrpc(resolved.status()));
+    ids = std::move(*resolved);
+  }
+  const bool by_id = !req->has_positions();
+  const bool radius = req->kind() == v1::QUERY_KIND_RADIUS;
+  const int k = req->kind() == v1::QUERY_KIND_K_NEAREST ? req->k() : 1;
+  const uint64_t total_rows = by_id ? ids.size() : positions.size();
+  // Every argument is checked on the whole request before any row is sent.
   {
-    std::shared_lock lock(session.mutex());
-    step = session.step();
-    const core::Triangulation& t = session.tri();
-    std::vector<uint32_t> ids;
-    if (req->has_all_points()) {
-      ids.resize(t.size());
-      for (uint32_t i = 0; i < t.size(); ++i) ids[i] = i;
-    } else if (req->has_point_ids()) {
-      auto resolved = ResolvePointIds(req->point_ids(), session);
-      if (!resolved.ok()) return rpc.Done(ToGrpc(resolved.status()));
-      ids = std::move(*resolved);
+    absl::Status st = by_id ? core::CheckQueryIds(t, ids)
+                            : core::CheckQueryPositions(positions);
+    if (st.ok() && radius) st = core::CheckQueryRadius(req->radius());
+    if (!st.ok()) {
+      if (st.code() == absl::StatusCode::kNotFound && req->has_point_ids()) {
+        st = absl::NotFoundError(absl::StrCat("point_ids.", st.message()));
+      }
+      return rpc.Done(ToGrpc(st));
     }
-    const bool by_id = !req->has_positions();
-    const int k = req->kind() == v1::QUERY_KIND_K_NEAREST ? req->k() : 1;
-    if (req->kind() == v1::QUERY_KIND_RADIUS) {
+  }
+  const bool all_nearest = !radius && by_id && req->has_all_points() &&
+                           k == 1 && req->exclude_self();
+  if (!radius && !all_nearest &&
+      static_cast<uint64_t>(k) * total_rows > limits.max_total_results) {
+    return rpc.Done(
+        grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
+                     absl::StrCat("k: ", k, " results for each of ", total_rows,
+                                  " queries exceed the limit of ",
+                                  limits.max_total_results)));
+  }
+  const uint32_t rows_per_chunk =
+      req->rows_per_chunk() ? req->rows_per_chunk() : 16384;
+  // Rows are computed a block at a time and each block is sent before the
+  // next is computed: memory follows the block, not the whole answer, and a
+  // client that stops reading stops the computation (Write blocks under
+  // flow control).
+  const uint64_t block_rows = all_nearest
+                                  ? std::max<uint64_t>(total_rows, 1)
+                                  : std::max<uint64_t>(rows_per_chunk, 65536);
+  const std::vector<uint64_t>* cids =
+      session.has_client_ids() ? &session.client_ids() : nullptr;
+  uint64_t produced = 0;
+  double compute_seconds = 0.0;
+  for (uint64_t first = 0; first < total_rows || first == 0;
+       first += block_rows) {
+    const uint64_t count = std::min(block_rows, total_rows - first);
+    limits.max_total_results = session.max_query_results() - produced;
+    const auto start = Clock::now();
+    absl::StatusOr<core::NeighborLists> result;
+    const absl::Span<const uint32_t> id_block =
+        by_id ? absl::MakeConstSpan(ids).subspan(first, count)
+              : absl::Span<const uint32_t>();
+    const absl::Span<const core::Vec2> pos_block =
+        by_id ? absl::Span<const core::Vec2>()
+              : absl::MakeConstSpan(positions).subspan(first, count);
+    if (radius) {
       core::RowOptions rows;
       rows.distances = req->include_distances();
       result =
           by_id ? core::WithinRadiusOfPoints(
-                      t, ids, req->radius(), req->exclude_self(),
+                      t, id_block, req->radius(), req->exclude_self(),
                       req->max_results_per_row(), limits, rows)
-                : core::WithinRadius(t, positions, req->radius(),
+                : core::WithinRadius(t, pos_block, req->radius(),
                                      req->max_results_per_row(), limits, rows);
-    } else if (by_id && req->has_all_points() && k == 1 &&
-               req->exclude_self()) {
+    } else if (all_nearest) {
       result = core::AllNearestNeighbors(t);
     } else {
-      if (static_cast<uint64_t>(k) * (by_id ? ids.size() : positions.size()) >
-          limits.max_total_results) {
-        return rpc.Done(
-            grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
-                         absl::StrCat("k: ", k, " results for each of ",
-                                      by_id ? ids.size() : positions.size(),
-                                      " queries exceed the limit of ",
-                                      limits.max_total_results)));
+      result = by_id ? core::KNearestOfPoints(t, id_block, k,
+                                              req->exclude_self(), limits)
+                     : core::KNearest(t, pos_block, k, limits);
+    }
+    compute_seconds +=
+        std::chrono::duration<double>(Clock::now() - start).count();
+    if (!result.ok()) {
+      if (result.status().code() == absl::StatusCode::kResourceExhausted) {
+        return rpc.Done(grpc::Status(
+            grpc::StatusCode::RESOURCE_EXHAUSTED,
+            absl::StrCat("query stopped: its rows hold more than ",
+                         session.max_query_results(),
+                         " results in all (the limit); ask fewer targets, a "
+                         "smaller k or radius, or set max_results_per_row")));
       }
-      result =
-          by_id ? core::KNearestOfPoints(t, ids, k, req->exclude_self(), limits)
-                : core::KNearest(t, positions, k, limits);
+      return rpc.Done(ToGrpc(result.status()));
     }
+    produced += result->ids.size();
+    for (uint64_t c = 0; c < count || (count == 0 && c == 0);
+         c += rows_per_chunk) {
+      if (ctx->IsCancelled()) {
+        return rpc.Done(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled"));
+      }
+      const uint64_t n = std::min<uint64_t>(rows_per_chunk, count - c);
+      if (!writer->Write(ToChunk(*result, c, n, first, total_rows, snap.step,
+                                 req->include_distances(), cids))) {
+        return rpc.Done(grpc::Status(grpc::StatusCode::CANCELLED,
+                                     "the client stopped reading"));
+      }
+    }
+    if (total_rows == 0) break;
   }
-  if (!result.ok()) {
-    absl::Status st = result.status();
-    if (st.code() == absl::StatusCode::kNotFound && req->has_point_ids()) {
-      st = absl::NotFoundError(absl::StrCat("point_ids.", st.message()));
-    }
-    return rpc.Done(ToGrpc(st));
-  }
-  metrics_->ObserveQuery(
-      op, session.backend(),
-      std::chrono::duration<double>(Clock::now() - start).count());
-  const uint32_t rows_per_chunk =
-      req->rows_per_chunk() ? req->rows_per_chunk() : 16384;
-  const uint64_t chunks = NumChunks(*result, rows_per_chunk);
-  for (uint64_t c = 0; c < chunks; ++c) {
-    if (ctx->IsCancelled()) {
-      return rpc.Done(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled"));
-    }
-    // Write blocks while the client does not read (flow control): a slow
-    // reader holds one chunk here, and no session lock.
-    if (!writer->Write(ToChunk(
-            *result, c, step, req->include_distances(), rows_per_chunk,
-            session.has_client_ids() ? &session.client_ids() : nullptr))) {
-      break;
-    }
-  }
+  metrics_->ObserveQuery(op, session.backend(), compute_seconds);
   return rpc.Done(grpc::Status::OK);
 }
 
@@ -503,10 +526,10 @@ grpc::Status KinetriServiceImpl::ExportTriangulation(
   std::vector<std::array<uint32_t, 3>> tris;
   uint64_t step = 0;
   {
-    std::shared_lock lock((*s)->mutex());
-    step = (*s)->step();
-    pos = (*s)->tri().Positions();
-    tris = (*s)->tri().Triangles();
+    const Session::Snapshot snap = (*s)->Read();
+    step = snap.step;
+    pos = snap.tri->Positions();
+    tris = snap.tri->Triangles();
   }
   const size_t per =
       req->triangles_per_chunk() ? req->triangles_per_chunk() : 100000;

@@ -26,12 +26,64 @@ Session::Session(std::string id, core::Triangulation tri, std::string backend,
       create_time_(absl::Now()),
       point_count_(tri.size()),
       client_ids_(std::move(client_ids)),
-      tri_(std::move(tri)),
+      current_(std::make_shared<core::Triangulation>(std::move(tri))),
       update_time_(create_time_) {
   index_of_.reserve(client_ids_.size());
   for (uint32_t i = 0; i < client_ids_.size(); ++i) {
     index_of_.emplace(client_ids_[i], i);
   }
+}
+
+Session::Snapshot Session::Read() const {
+  absl::MutexLock lock(&mu_);
+  mu_.Await(absl::Condition(
+      +[](const bool* in_place) { return !*in_place; }, &in_place_));
+  return Snapshot{current_, step_, update_time_};
+}
+
+absl::StatusOr<core::StepReport> Session::ApplyStep(
+    uint64_t step, const core::DisplacementBatch& batch,
+    const core::CancelToken* cancel, bool* copied) {
+  absl::MutexLock write_lock(&write_mu_);
+  std::shared_ptr<core::Triangulation> target;
+  std::shared_ptr<const core::Triangulation> source;
+  {
+    absl::MutexLock lock(&mu_);
+    if (step != step_ + 1) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("step: got ", step, ", expected ", step_ + 1,
+                       " (steps apply in order)"));
+    }
+    // Every reference a reader holds was taken under mu_, so a count of
+    // one means nobody reads this triangulation, and nobody will until
+    // in_place_ is cleared.
+    if (current_.use_count() == 1) {
+      in_place_ = true;
+      target = current_;
+    } else {
+      source = current_;
+    }
+  }
+  if (copied) *copied = target == nullptr;
+  if (!target) {
+    // Readers hold the current step: move a copy. Only this writer ever
+    // replaces current_, so `source` stays the current step meanwhile.
+    target = std::make_shared<core::Triangulation>(source->Clone());
+    source.reset();
+  }
+  absl::StatusOr<core::StepReport> report =
+      target->ApplyDisplacements(batch, cancel);
+  absl::MutexLock lock(&mu_);
+  if (in_place_) {
+    in_place_ = false;  // on error ApplyDisplacements changed nothing
+  } else if (report.ok()) {
+    current_ = std::move(target);
+  }
+  if (report.ok()) {
+    step_ = step;
+    update_time_ = absl::Now();
+  }
+  return report;
 }
 
 absl::StatusOr<uint32_t> Session::IndexOf(uint64_t client_id,

@@ -5,7 +5,6 @@
 #include <cstdint>
 #include <map>
 #include <memory>
-#include <shared_mutex>
 #include <string>
 #include <vector>
 
@@ -13,6 +12,7 @@
 #include "absl/status/statusor.h"
 #include "absl/synchronization/mutex.h"
 #include "absl/time/time.h"
+#include "core/cancel.h"
 #include "core/triangulation.h"
 
 namespace kinetri::server {
@@ -26,25 +26,14 @@ struct ServerLimits {
   uint32_t max_threads = 256;
 };
 
-// A reader-writer lock that never starves writers: absl::Mutex blocks new
-// readers while a writer waits (std::shared_mutex on glibc prefers readers,
-// so a stream of queries could hold a step off indefinitely). Shaped for
-// std::unique_lock / std::shared_lock.
-class WriterPreferringMutex {
- public:
-  void lock() ABSL_EXCLUSIVE_LOCK_FUNCTION() { mu_.WriterLock(); }
-  void unlock() ABSL_UNLOCK_FUNCTION() { mu_.WriterUnlock(); }
-  void lock_shared() ABSL_SHARED_LOCK_FUNCTION() { mu_.ReaderLock(); }
-  void unlock_shared() ABSL_UNLOCK_FUNCTION() { mu_.ReaderUnlock(); }
-
- private:
-  absl::Mutex mu_;
-};
-
-// One session: its triangulation, step counter and metadata. Updates take
-// the lock exclusively (steps apply one at a time, atomically); queries take
-// it shared and run concurrently. A waiting step keeps new queries out, so it
-// waits at most for the queries already running.
+// One session: its triangulation, step counter and metadata.
+//
+// Readers (queries, export, describe) take an immutable snapshot of the
+// current step and hold no lock while they compute or stream: a step never
+// waits for them. A step (one at a time) moves the triangulation in place
+// when no reader holds it (readers arriving meanwhile wait for the step),
+// else a copy, published when it is done (read-copy-update); readers keep
+// their snapshot until they finish.
 class Session {
  public:
   // client_ids: empty for sequential ids, else one distinct id per point.
@@ -67,15 +56,21 @@ class Session {
   absl::StatusOr<uint32_t> IndexOf(uint64_t client_id,
                                    const std::string& field) const;
 
-  WriterPreferringMutex& mutex() { return mu_; }
-  // Guarded by mutex().
-  core::Triangulation& tri() { return tri_; }
-  uint64_t step() const { return step_; }
-  void set_step(uint64_t s) {
-    step_ = s;
-    update_time_ = absl::Now();
-  }
-  absl::Time update_time() const { return update_time_; }
+  struct Snapshot {
+    std::shared_ptr<const core::Triangulation> tri;
+    uint64_t step = 0;
+    absl::Time update_time;
+  };
+  // The current step, immutable for as long as the caller holds it.
+  Snapshot Read() const;
+
+  // Applies `batch` as step number `step` (FAILED_PRECONDITION unless it is
+  // the next one). On any error, cancellation included, the session stays
+  // at its previous step. `copies` (optional) counts steps that had to copy
+  // the triangulation because readers held it.
+  absl::StatusOr<core::StepReport> ApplyStep(
+      uint64_t step, const core::DisplacementBatch& batch,
+      const core::CancelToken* cancel, bool* copied = nullptr);
 
  private:
   // Declared first, destroyed last: once the triangulation's memory is
@@ -93,10 +88,13 @@ class Session {
   const uint64_t point_count_;
   const std::vector<uint64_t> client_ids_;
   absl::flat_hash_map<uint64_t, uint32_t> index_of_;
-  WriterPreferringMutex mu_;
-  core::Triangulation tri_;
-  uint64_t step_ = 0;
-  absl::Time update_time_;
+
+  absl::Mutex write_mu_;  // one step at a time
+  mutable absl::Mutex mu_;
+  std::shared_ptr<core::Triangulation> current_ ABSL_GUARDED_BY(mu_);
+  bool in_place_ ABSL_GUARDED_BY(mu_) = false;  // a step moves current_
+  uint64_t step_ ABSL_GUARDED_BY(mu_) = 0;
+  absl::Time update_time_ ABSL_GUARDED_BY(mu_);
 };
 
 class SessionRegistry {

@@ -115,7 +115,23 @@ absl::StatusOr<Neighbors> Client::Query(const v1::QueryRequest& request) {
   Neighbors out;
   out.offsets.push_back(0);
   v1::QueryResponse chunk;
+  bool first = true;
   while (reader->Read(&chunk)) {
+    // Every chunk of one answer comes from the same step, rows in order.
+    if (!first && chunk.step() != out.step) {
+      ctx.TryCancel();
+      reader->Finish();
+      return absl::InternalError(absl::StrCat("query answer mixes steps ",
+                                              out.step, " and ", chunk.step()));
+    }
+    if (chunk.first_row() != out.offsets.size() - 1) {
+      ctx.TryCancel();
+      reader->Finish();
+      return absl::InternalError(absl::StrCat("query chunk starts at row ",
+                                              chunk.first_row(), ", expected ",
+                                              out.offsets.size() - 1));
+    }
+    first = false;
     out.step = chunk.step();
     const uint64_t base = out.ids.size() + out.client_ids.size();
     const uint64_t row0 = out.offsets.size() - 1;
