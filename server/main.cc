@@ -45,6 +45,10 @@ ABSL_FLAG(int, max_streams_per_connection, 100,
 ABSL_FLAG(int, keepalive_seconds, 60,
           "ping idle connections this often; a peer that does not answer "
           "within 20 s is dropped and its calls cancelled");
+ABSL_FLAG(int64_t, max_memory_mb, 0,
+          "memory budget for sessions and their step copies, MiB; creations "
+          "beyond it get RESOURCE_EXHAUSTED before allocating (0: 80% of the "
+          "cgroup's or machine's memory; -1: no budget)");
 ABSL_FLAG(bool, reuse_port, false,
           "let another process listen on the same port (SO_REUSEPORT); off: "
           "a second server on an occupied port refuses to start");
@@ -98,7 +102,17 @@ int main(int argc, char** argv) {
 
   kinetri::server::IdleWatchdog watchdog(std::chrono::seconds(
       std::max(0, absl::GetFlag(FLAGS_stream_idle_timeout_seconds))));
-  kinetri::server::KinetriServiceImpl service(&registry, &metrics, &watchdog);
+  const int64_t memory_mb = absl::GetFlag(FLAGS_max_memory_mb);
+  kinetri::server::MemoryBudget budget(
+      memory_mb < 0    ? 0
+      : memory_mb == 0 ? kinetri::server::MemoryBudget::DefaultLimit()
+                       : static_cast<uint64_t>(memory_mb) << 20);
+  kinetri::server::KinetriServiceImpl service(&registry, &metrics, &watchdog,
+                                              &budget);
+  if (budget.limit() > 0) {
+    std::printf("kinetri-server: memory budget %llu MiB (--max_memory_mb)\n",
+                static_cast<unsigned long long>(budget.limit() >> 20));
+  }
   grpc::EnableDefaultHealthCheckService(true);
   grpc::reflection::InitProtoReflectionServerBuilderPlugin();
   grpc::ServerBuilder builder;

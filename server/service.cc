@@ -139,6 +139,11 @@ grpc::Status KinetriServiceImpl::CreateSession(
         "header.options.backend: this server has no CUDA backend (built "
         "without it or no GPU present); use BACKEND_AUTO or BACKEND_CPU"));
   }
+  // Admitted against the memory budget before any point is stored.
+  auto memory = budget_->Reserve(
+      header.point_count() * MemoryBudget::kSessionBytesPerPoint,
+      absl::StrCat("CreateSession of ", header.point_count(), " points"));
+  if (!memory.ok()) return rpc.Done(ToGrpc(memory.status()));
   const bool client_ids =
       header.options().point_id_policy() == v1::POINT_ID_POLICY_CLIENT;
   // Memory follows the points received, not the announced count (a client
@@ -231,8 +236,9 @@ grpc::Status KinetriServiceImpl::CreateSession(
           ? std::min(header.options().max_query_results(),
                      registry_->limits().max_query_results)
           : registry_->limits().max_query_results;
-  auto session = std::make_shared<Session>(
-      id, std::move(*tri), "cpu", max_results, threads, std::move(ids));
+  auto session = std::make_shared<Session>(id, std::move(*tri), "cpu",
+                                           max_results, threads, std::move(ids),
+                                           std::move(*memory), budget_);
   auto added = registry_->Add(session);
   if (!added.ok()) return rpc.Done(ToGrpc(added.status()));
   *response = Describe(**added);

@@ -7,6 +7,7 @@
 
 #include "kinetri/v1/kinetri.grpc.pb.h"
 #include "server/idle_watchdog.h"
+#include "server/memory_budget.h"
 #include "server/metrics.h"
 #include "server/session_registry.h"
 
@@ -14,10 +15,14 @@ namespace kinetri::server {
 
 class KinetriServiceImpl final : public v1::KinetriService::Service {
  public:
-  // `watchdog` cancels step and creation streams that stop sending.
+  // `watchdog` cancels step and creation streams that stop sending;
+  // `budget` admits creations and step copies before they allocate.
   KinetriServiceImpl(SessionRegistry* registry, Metrics* metrics,
-                     IdleWatchdog* watchdog)
-      : registry_(registry), metrics_(metrics), watchdog_(watchdog) {}
+                     IdleWatchdog* watchdog, MemoryBudget* budget)
+      : registry_(registry),
+        metrics_(metrics),
+        watchdog_(watchdog),
+        budget_(budget) {}
 
   grpc::Status CreateSession(
       grpc::ServerContext* ctx,
@@ -48,6 +53,7 @@ class KinetriServiceImpl final : public v1::KinetriService::Service {
   SessionRegistry* registry_;
   Metrics* metrics_;
   IdleWatchdog* watchdog_;
+  MemoryBudget* budget_;
 };
 
 }  // namespace kinetri::server

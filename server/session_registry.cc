@@ -7,6 +7,7 @@
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "absl/time/clock.h"
 
 namespace kinetri::server {
 
@@ -18,7 +19,8 @@ Session::ReturnMemoryOnDestroy::~ReturnMemoryOnDestroy() {
 
 Session::Session(std::string id, core::Triangulation tri, std::string backend,
                  uint64_t max_query_results, uint32_t threads,
-                 std::vector<uint64_t> client_ids)
+                 std::vector<uint64_t> client_ids,
+                 MemoryBudget::Reservation memory, MemoryBudget* budget)
     : id_(std::move(id)),
       backend_(std::move(backend)),
       max_query_results_(max_query_results),
@@ -26,6 +28,8 @@ Session::Session(std::string id, core::Triangulation tri, std::string backend,
       create_time_(absl::Now()),
       point_count_(tri.size()),
       client_ids_(std::move(client_ids)),
+      memory_(std::move(memory)),
+      budget_(budget),
       current_(std::make_shared<core::Triangulation>(std::move(tri))),
       update_time_(create_time_) {
   index_of_.reserve(client_ids_.size());
@@ -62,6 +66,32 @@ absl::StatusOr<core::StepReport> Session::ApplyStep(
       target = current_;
     } else {
       source = current_;
+    }
+  }
+  MemoryBudget::Reservation copy_memory;
+  if (!target && budget_ != nullptr) {
+    auto r = budget_->Reserve(point_count_ * MemoryBudget::kCopyBytesPerPoint,
+                              "step copy");
+    if (r.ok()) {
+      copy_memory = std::move(*r);
+    } else {
+      // No room for a copy: keep new readers out and wait for the current
+      // ones to finish, then move the triangulation in place.
+      source.reset();
+      {
+        absl::MutexLock lock(&mu_);
+        in_place_ = true;
+      }
+      while (true) {
+        {
+          absl::MutexLock lock(&mu_);
+          if (current_.use_count() == 1) {
+            target = current_;
+            break;
+          }
+        }
+        absl::SleepFor(absl::Milliseconds(1));
+      }
     }
   }
   if (copied) *copied = target == nullptr;

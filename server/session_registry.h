@@ -14,6 +14,7 @@
 #include "absl/time/time.h"
 #include "core/cancel.h"
 #include "core/triangulation.h"
+#include "server/memory_budget.h"
 
 namespace kinetri::server {
 
@@ -37,9 +38,13 @@ struct ServerLimits {
 class Session {
  public:
   // client_ids: empty for sequential ids, else one distinct id per point.
+  // `memory` (kept for the session's life) is its share of the server's
+  // budget; `budget` (optional) is asked for the copies steps make.
   Session(std::string id, core::Triangulation tri, std::string backend,
           uint64_t max_query_results, uint32_t threads,
-          std::vector<uint64_t> client_ids = {});
+          std::vector<uint64_t> client_ids = {},
+          MemoryBudget::Reservation memory = {},
+          MemoryBudget* budget = nullptr);
 
   const std::string& id() const { return id_; }
   std::string name() const { return "sessions/" + id_; }
@@ -66,8 +71,10 @@ class Session {
 
   // Applies `batch` as step number `step` (FAILED_PRECONDITION unless it is
   // the next one). On any error, cancellation included, the session stays
-  // at its previous step. `copies` (optional) counts steps that had to copy
-  // the triangulation because readers held it.
+  // at its previous step. `copied` (optional): the step moved a copy
+  // because readers held the current step. When the memory budget has no
+  // room for a copy, the step waits for the readers instead (new readers
+  // wait behind it).
   absl::StatusOr<core::StepReport> ApplyStep(
       uint64_t step, const core::DisplacementBatch& batch,
       const core::CancelToken* cancel, bool* copied = nullptr);
@@ -89,6 +96,8 @@ class Session {
   const std::vector<uint64_t> client_ids_;
   absl::flat_hash_map<uint64_t, uint32_t> index_of_;
 
+  MemoryBudget::Reservation memory_;
+  MemoryBudget* const budget_;
   absl::Mutex write_mu_;  // one step at a time
   mutable absl::Mutex mu_;
   std::shared_ptr<core::Triangulation> current_ ABSL_GUARDED_BY(mu_);

@@ -360,6 +360,71 @@ TEST(HardeningStreams, StepBufferIsBoundedAndIdleStreamsEnd) {
   EXPECT_EQ(client.GetSession(s->name())->step(), 0u);
 }
 
+// Defect 6: 8 half-open creations announcing 50M points reserved GBs up
+// front and a 20M-point creation ran the server out of memory. Creations are
+// admitted against the memory budget before anything is allocated.
+TEST(HardeningMemory, CreationsAreAdmittedAgainstTheBudget) {
+  testing::ServerProcess server(KINETRI_SERVER_BINARY,
+                                {"--threads=2", "--max_memory_mb=100"});
+  ASSERT_TRUE(server.ok());
+  Client client(server.target());
+  auto big =
+      client.CreateSession(UniformXY(400000, 9), v1::SessionOptions(), "big");
+  EXPECT_EQ(big.status().code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_NE(big.status().message().find("memory budget"), std::string::npos)
+      << big.status();
+  std::vector<std::string> names;
+  for (int i = 0; i < 3; ++i) {
+    auto s =
+        client.CreateSession(UniformXY(100000, 10 + i), v1::SessionOptions(),
+                             "s" + std::to_string(i));
+    if (i < 2) {
+      ASSERT_TRUE(s.ok()) << i << ": " << s.status();
+      names.push_back(s->name());
+    } else {
+      EXPECT_EQ(s.status().code(), absl::StatusCode::kResourceExhausted);
+    }
+  }
+  ASSERT_TRUE(client.DeleteSession(names[0]).ok());
+  auto again =
+      client.CreateSession(UniformXY(100000, 20), v1::SessionOptions(), "s3");
+  EXPECT_TRUE(again.ok()) << again.status();
+}
+
+// With no room in the budget for a snapshot copy, a step waits for the
+// readers of the current step instead, and still applies.
+TEST(HardeningMemory, StepWithoutRoomForACopyWaitsForReaders) {
+  testing::ServerProcess server(KINETRI_SERVER_BINARY,
+                                {"--threads=2", "--max_memory_mb=40"});
+  ASSERT_TRUE(server.ok());
+  Client client(server.target());
+  const size_t n = 100000;
+  auto s = client.CreateSession(UniformXY(n, 21), v1::SessionOptions(), "w");
+  ASSERT_TRUE(s.ok()) << s.status();
+  Clock::time_point query_done;
+  std::thread reader([&] {
+    Client c(server.target());
+    v1::QueryRequest q;
+    q.set_session(s->name());
+    q.set_kind(v1::QUERY_KIND_RADIUS);
+    q.set_radius(0.01);
+    q.mutable_all_points();
+    EXPECT_TRUE(c.Query(q).ok());
+    query_done = Clock::now();
+  });
+  std::this_thread::sleep_for(std::chrono::milliseconds(150));
+  auto steps = client.OpenSteps(s->name());
+  ASSERT_TRUE(steps.ok());
+  auto ack = (*steps)->MoveBy(std::vector<double>(2 * n, 1e-5));
+  const Clock::time_point step_done = Clock::now();
+  reader.join();
+  ASSERT_TRUE(ack.ok()) << ack.status();
+  // It waited for the reader (which sees its end a moment after the
+  // server's handler dropped the snapshot).
+  EXPECT_GE(step_done + std::chrono::milliseconds(100), query_done);
+  EXPECT_EQ(client.GetSession(s->name())->step(), 1u);
+}
+
 // Defect 6: deleting a session returned nothing to the OS.
 TEST(HardeningMemory, DeleteReturnsMemory) {
   testing::ServerProcess server(KINETRI_SERVER_BINARY, {"--threads=2"});
