@@ -132,7 +132,7 @@ void FixLoop(const MeshView& m, const Vec2* p, Bounds b,
 
 // Delaunay flips with a LIFO stack of half-edges inside b (each half-edge's
 // own triangle lies in b).
-template <bool kBounded>
+template <bool kBounded, bool kStarChecks = false>
 void LegalizeLoop(const MeshView& m, const Vec2* p, Bounds b,
                   std::vector<uint32_t>& stack, std::vector<uint32_t>& deferred,
                   FlipCounts* counts, uint8_t* mark, Mesh* mesh) {
@@ -150,6 +150,13 @@ void LegalizeLoop(const MeshView& m, const Vec2* p, Bounds b,
                       b.In(TriangleOf(m.twin[Prev(e)])) &&
                       b.In(TriangleOf(m.twin[Next(f)])) &&
                       b.In(TriangleOf(m.twin[Prev(f)])))) {
+      deferred.push_back(e);
+      continue;
+    }
+    // With vertex-edge updates in parallel (mesh non-null), every vertex
+    // whose vertex_edge the flip writes has its whole star in b.
+    if (kStarChecks && !(StarIn(m, e, b) && StarIn(m, f, b) &&
+                         StarIn(m, Prev(e), b) && StarIn(m, Prev(f), b))) {
       deferred.push_back(e);
       continue;
     }
@@ -472,6 +479,88 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
   return false;
 }
 
+bool RegionExecutor::MoveHeldInRegion(Mesh& mesh, uint32_t v,
+                                      const Vec2& target,
+                                      const RegionStepPolicy& policy,
+                                      uint32_t lo, uint32_t hi,
+                                      RegionStepStats* stats,
+                                      std::vector<uint32_t>* late_edges) {
+  const MeshView m = mesh.view();
+  const Bounds b{lo, hi};
+  thread_local std::vector<uint32_t> around, stack, waiting, deferred, log;
+  // Only this region writes v's vertex_edge while v's star lies in it.
+  const uint32_t e0 = std::atomic_ref<uint32_t>(mesh.mutable_vertex_edge()[v])
+                          .load(std::memory_order_relaxed);
+  if (e0 == kNoEdge || !b.In(TriangleOf(e0)) || !StarIn(m, e0, b)) {
+    return false;
+  }
+  around.clear();
+  AppendStarFrom(m, e0, &around);
+  for (uint32_t t : around) {
+    if (m.IsGhost(t)) return false;  // near the hull: the serial pass
+  }
+  FlipCounts counts;
+  Vec2 goal = target;
+  int halvings = 0;
+  while (true) {
+    const Vec2 old = cur_[v];
+    cur_[v] = goal;
+    const Vec2* p = cur_.data();
+    around.clear();
+    AppendStarFrom(m, mesh.vertex_edge()[v], &around);
+    stack.clear();
+    for (uint32_t t : around) {
+      if (!rules::TriangleOk(m, p, t)) stack.push_back(t);
+    }
+    waiting.clear();
+    deferred.clear();
+    log.clear();
+    FlipCounts c;
+    FixLoop<true>(m, p, b, stack, waiting, deferred, &log, &c, tri_mark_.data(),
+                  &mesh);
+    if (!deferred.empty() || c.hull_absorb + c.hull_release > 0) {
+      // Reaches out of the region or changes the hull: the serial pass.
+      Undo(m, log, &mesh);
+      cur_[v] = old;
+      stats->flips += counts;
+      return false;
+    }
+    if (waiting.empty()) {
+      counts += c;
+      stack.clear();
+      around.clear();
+      AppendStarFrom(m, mesh.vertex_edge()[v], &around);
+      for (uint32_t e : log) {
+        around.push_back(TriangleOf(e));
+        around.push_back(TriangleOf(m.twin[e]));
+      }
+      for (uint32_t t : around) {
+        for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) stack.push_back(e);
+      }
+      // Edges that cross the region are legalized in the serial pass.
+      LegalizeLoop<true, true>(m, p, b, stack, *late_edges, &counts,
+                               tri_mark_.data(), &mesh);
+      if (goal == target) {
+        stats->flips += counts;
+        return true;
+      }
+      goal = target;
+      continue;
+    }
+    Undo(m, log, &mesh);
+    cur_[v] = old;
+    std::optional<Vec2> h;
+    if (halvings < policy.max_halvings) h = Halfway(old, goal);
+    if (!h) {
+      stats->flips += counts;
+      return false;
+    }
+    ++halvings;
+    ++stats->halvings;
+    goal = *h;
+  }
+}
+
 bool RegionExecutor::MoveHeld(Mesh& mesh, uint32_t v, const Vec2& target,
                               const RegionStepPolicy& policy,
                               RegionStepStats* stats) {
@@ -716,12 +805,61 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
   stats->legalize_seconds += SecondsSince(t0);
   t0 = std::chrono::steady_clock::now();
 
-  // 5. Held vertices move alone; the ones that cannot are removed.
+  // 5. Held vertices move alone: first, in parallel, each in the region
+  //    holding its star when everything its move touches stays there; then
+  //    serially the rest (near the hull, across regions, stuck); the ones
+  //    that cannot move are removed.
   stats->held = static_cast<uint32_t>(held_list_.size());
   if (Cancelled()) return stop(true);
-  for (size_t i = 0; i < held_list_.size(); ++i) {
+  std::vector<uint32_t> left;
+  {
+    for (Region& g : regions_) g.ClearWork();
+    const uint32_t* ve = mesh.vertex_edge().data();
+    for (uint32_t v : held_list_) {
+      const uint32_t e = ve[v];
+      if (e == kNoEdge) {
+        left.push_back(v);
+      } else {
+        regions_[TriangleOf(e) / rt].stack.push_back(v);
+      }
+    }
+    std::vector<RegionStepStats> rstats(num_regions);
+    tbb::parallel_for(
+        tbb::blocked_range<size_t>(0, num_regions, 1),
+        [&](const tbb::blocked_range<size_t>& range) {
+          for (size_t r = range.begin(); r != range.end(); ++r) {
+            Region& g = regions_[r];
+            const uint32_t lo = static_cast<uint32_t>(r * rt);
+            const uint32_t hi = static_cast<uint32_t>(
+                std::min<size_t>(nt, (r + 1) * size_t{rt}));
+            for (uint32_t v : g.stack) {
+              if (Cancelled() || !MoveHeldInRegion(mesh, v, to[v], pol, lo, hi,
+                                                   &rstats[r], &g.deferred)) {
+                g.waiting.push_back(v);
+              }
+            }
+          }
+        });
+    if (Cancelled()) return stop(true);
+    std::vector<uint32_t> late;
+    for (size_t r = 0; r < num_regions; ++r) {
+      stats->flips += rstats[r].flips;
+      stats->halvings += rstats[r].halvings;
+      late.insert(late.end(), regions_[r].deferred.begin(),
+                  regions_[r].deferred.end());
+      left.insert(left.end(), regions_[r].waiting.begin(),
+                  regions_[r].waiting.end());
+    }
+    std::vector<uint32_t> unused;
+    FlipCounts c;
+    LegalizeLoop<false>(m, cur_.data(), Bounds{}, late, unused, &c,
+                        tri_mark_.data(), &mesh);
+    stats->flips += c;
+    stats->held_serial = static_cast<uint32_t>(left.size());
+  }
+  for (size_t i = 0; i < left.size(); ++i) {
     if (i % 64 == 63 && Cancelled()) return stop(true);
-    const uint32_t v = held_list_[i];
+    const uint32_t v = left[i];
     if (MoveHeld(mesh, v, to[v], pol, stats)) continue;
     const uint32_t e = mesh.vertex_edge()[v];
     (*hints)[v] = mesh.view().Dest(e);

@@ -65,6 +65,7 @@ struct RegionStepPolicy {
 struct RegionStepStats {
   FlipCounts flips;
   uint32_t held = 0;          // vertices held back and moved alone
+  uint32_t held_serial = 0;   // of those, moved in the serial pass
   uint32_t halvings = 0;      // bisections of held vertices' motion
   uint32_t fix_attempts = 0;  // dense fixing attempts (1 = no repeat)
   uint32_t deferred = 0;      // elements left to the serial pass
@@ -128,6 +129,15 @@ class RegionExecutor {
   void Hold(uint32_t v, uint32_t edge);
   bool MoveHeld(Mesh& mesh, uint32_t v, const Vec2& target,
                 const RegionStepPolicy& policy, RegionStepStats* stats);
+  // MoveHeld for the parallel pass: v's star and everything its fixing and
+  // legalizing read and write lie in triangle slots [lo, hi) (legalizing
+  // edges that would leave it are appended to late_edges). False: v was
+  // left where it was (its original or a bisected position) for the
+  // serial pass.
+  bool MoveHeldInRegion(Mesh& mesh, uint32_t v, const Vec2& target,
+                        const RegionStepPolicy& policy, uint32_t lo,
+                        uint32_t hi, RegionStepStats* stats,
+                        std::vector<uint32_t>* late_edges);
 
   // The token fired (polled at most once per region or held vertex).
   bool Cancelled() const { return cancel_ != nullptr && cancel_->Cancelled(); }
