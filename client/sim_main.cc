@@ -1,10 +1,14 @@
 // kinetri-sim: a simulation client that streams every step to kinetri-server
 // (Brownian gas or diffusion-limited aggregation), queries neighbours each
 // step, prints progress and draws the final triangulation.
+#include <algorithm>
+#include <cerrno>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
+#include <fstream>
 #include <random>
 #include <string>
 #include <vector>
@@ -58,7 +62,36 @@ int main(int argc, char** argv) {
     std::fprintf(stderr, "--mode must be dla or brownian\n");
     return 2;
   }
-  const uint32_t n = std::max<uint32_t>(absl::GetFlag(FLAGS_n), 3);
+  if (absl::GetFlag(FLAGS_n) < 3) {
+    std::fprintf(stderr,
+                 "kinetri-sim: --n=%u: a triangulation needs >= 3 "
+                 "particles\n",
+                 absl::GetFlag(FLAGS_n));
+    return 2;
+  }
+  if (absl::GetFlag(FLAGS_steps) < 0) {
+    std::fprintf(stderr, "kinetri-sim: --steps must be >= 0\n");
+    return 2;
+  }
+  if (!(absl::GetFlag(FLAGS_sigma) >= 0.0 &&
+        std::isfinite(absl::GetFlag(FLAGS_sigma)))) {
+    std::fprintf(stderr, "kinetri-sim: --sigma must be a number >= 0\n");
+    return 2;
+  }
+  // An unwritable picture is reported now, not after the whole run.
+  const std::string svg_path = absl::GetFlag(FLAGS_svg);
+  if (!svg_path.empty()) {
+    const bool existed = std::ifstream(svg_path).good();
+    std::ofstream probe(svg_path, std::ios::app);
+    if (!probe) {
+      std::fprintf(stderr, "kinetri-sim: --svg=%s: cannot write (%s)\n",
+                   svg_path.c_str(), std::strerror(errno));
+      return 2;
+    }
+    probe.close();
+    if (!existed) std::remove(svg_path.c_str());
+  }
+  const uint32_t n = absl::GetFlag(FLAGS_n);
   const double spacing = 1.0 / std::sqrt(double(n));
   std::mt19937_64 rng(absl::GetFlag(FLAGS_seed));
   std::uniform_real_distribution<double> u(0.0, 1.0);
