@@ -25,6 +25,31 @@ def _raise(err: grpc.RpcError):
     raise KinetriError(err.code(), err.details()) from None
 
 
+def _point_ids(ids, client: bool, field: str = "ids") -> np.ndarray:
+    """Point ids as sent: uint64 client ids, or sequential ids checked to
+    exist in uint32 range (a larger id never wraps onto another point)."""
+    a = np.asarray(ids)
+    if a.ndim != 1:
+        raise ValueError(f"{field} must be one-dimensional")
+    if a.size and not np.issubdtype(a.dtype, np.integer):
+        raise ValueError(f"{field} must be integers")
+    if client:
+        if a.size and np.issubdtype(a.dtype, np.signedinteger) and a.min() < 0:
+            i = int(np.argmax(a < 0))
+            raise KinetriError(grpc.StatusCode.NOT_FOUND,
+                               f"{field}[{i}] = {a[i]}: no such point")
+        return a.astype(np.uint64)
+    if a.size:
+        bad = (a < 0) | (a > np.iinfo(np.uint32).max) if \
+            np.issubdtype(a.dtype, np.signedinteger) else \
+            (a > np.iinfo(np.uint32).max)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise KinetriError(grpc.StatusCode.NOT_FOUND,
+                               f"{field}[{i}] = {a[i]}: no such point")
+    return a.astype(np.uint32)
+
+
 def _xy(points) -> np.ndarray:
     a = np.ascontiguousarray(points, dtype=np.float64)
     if a.ndim != 2 or a.shape[1] != 2:
@@ -53,12 +78,23 @@ class Neighbors:
         return len(self.offsets) - 1
 
 
+class Export(tuple):
+    """(step, positions, triangles), unpackable as before, with .ids."""
+
+    def __new__(cls, step, positions, triangles, ids):
+        obj = super().__new__(cls, (step, positions, triangles))
+        obj.step, obj.positions, obj.triangles, obj.ids = (
+            step, positions, triangles, ids)
+        return obj
+
+
 class StepStream:
     """One long-lived stream; each call applies one step and returns its stats."""
 
     def __init__(self, stub, session: str, first_step: int,
-                 chunk_points: int = _CHUNK_POINTS):
+                 chunk_points: int = _CHUNK_POINTS, client_ids: bool = False):
         self._chunk_points = chunk_points
+        self._client_ids = client_ids
         self._session = session
         self._next = first_step
         self._requests: List[pb.StepRequest] = []
@@ -70,6 +106,9 @@ class StepStream:
         return self._next
 
     def move_by(self, deltas, ids: Optional[Sequence[int]] = None):
+        """Moves points by (n, 2) deltas: all points in id order, or the
+        points named by `ids` (the client's ids on POINT_ID_POLICY_CLIENT
+        sessions)."""
         return self._send(pb.DISPLACEMENT_MODE_DELTA, deltas, ids)
 
     def move_to(self, positions, ids: Optional[Sequence[int]] = None):
@@ -77,7 +116,7 @@ class StepStream:
 
     def _send(self, mode, values, ids):
         flat = _xy(values)
-        id_arr = None if ids is None else np.asarray(ids, dtype=np.uint32)
+        id_arr = None if ids is None else _point_ids(ids, self._client_ids)
         if id_arr is not None and 2 * len(id_arr) != len(flat):
             raise ValueError("one (x, y) pair per id")
         step = 2 * self._chunk_points
@@ -88,7 +127,11 @@ class StepStream:
                                  mode=mode, end_of_step=end == len(flat))
             req.xy.extend(flat[start:end].tolist())
             if id_arr is not None:
-                req.ids.extend(id_arr[start // 2:end // 2].tolist())
+                part = id_arr[start // 2:end // 2].tolist()
+                if self._client_ids:
+                    req.client_ids.extend(part)
+                else:
+                    req.ids.extend(part)
             self._queue.put(req)
             start = end
             if start >= len(flat):
@@ -140,6 +183,7 @@ class Client:
         self._channel = grpc.insecure_channel(
             target, options=[("grpc.max_receive_message_length", 64 << 20)])
         self._stub = pb_grpc.KinetriServiceStub(self._channel)
+        self._policy = {}  # session name -> uses client ids
 
     def close(self):
         self._channel.close()
@@ -198,14 +242,24 @@ class Client:
                 return out
 
     def delete_session(self, name: str) -> None:
+        self._policy.pop(name, None)
         try:
             self._stub.DeleteSession(pb.DeleteSessionRequest(name=name))
         except grpc.RpcError as e:
             _raise(e)
 
     def open_steps(self, name: str) -> StepStream:
-        return StepStream(self._stub, name, self.get_session(name).step + 1,
-                          self._chunk_points)
+        s = self.get_session(name)
+        return StepStream(self._stub, name, s.step + 1, self._chunk_points,
+                          s.options.point_id_policy ==
+                          pb.POINT_ID_POLICY_CLIENT)
+
+    def _uses_client_ids(self, name: str) -> bool:
+        """The session's id policy (asked once per session name)."""
+        if name not in self._policy:
+            self._policy[name] = (self.get_session(name).options.point_id_policy
+                                  == pb.POINT_ID_POLICY_CLIENT)
+        return self._policy[name]
 
     # Queries ----------------------------------------------------------------
     def query(self, request: pb.QueryRequest) -> Neighbors:
@@ -242,7 +296,7 @@ class Client:
         req = pb.QueryRequest(session=name, kind=pb.QUERY_KIND_K_NEAREST, k=k,
                               include_distances=True,
                               exclude_self=exclude_self)
-        self._targets(req, points, ids)
+        self._targets(req, name, points, ids)
         return self.query(req)
 
     def radius(self, name: str, r: float, points=None, ids=None,
@@ -251,28 +305,41 @@ class Client:
                               radius=r, include_distances=True,
                               exclude_self=exclude_self,
                               max_results_per_row=max_per_row)
-        self._targets(req, points, ids)
+        self._targets(req, name, points, ids)
         return self.query(req)
 
-    @staticmethod
-    def _targets(req, points, ids):
+    def _targets(self, req, name, points, ids):
+        """Query targets: positions, point ids (the client's ids on
+        POINT_ID_POLICY_CLIENT sessions) or all points."""
         if points is not None:
             req.positions.xy.extend(_xy(points).tolist())
         elif ids is not None:
-            req.point_ids.ids.extend(np.asarray(ids, np.uint32).tolist())
+            client = self._uses_client_ids(name)
+            arr = _point_ids(ids, client).tolist()
+            if client:
+                req.point_ids.client_ids.extend(arr)
+            else:
+                req.point_ids.ids.extend(arr)
         else:
             req.all_points.SetInParent()
 
-    def export(self, name: str):
-        """Returns (step, positions (n, 2), triangles (m, 3))."""
-        xy, tris, step = [], [], 0
+    def export(self, name: str) -> "Export":
+        """Returns (step, positions (n, 2), triangles (m, 3)); the result
+        also has .ids: each position's id (the client's uint64 ids on
+        POINT_ID_POLICY_CLIENT sessions, else 0..n-1)."""
+        xy, tris, pids, step = [], [], [], 0
         try:
             for chunk in self._stub.ExportTriangulation(
                     pb.ExportTriangulationRequest(session=name)):
                 step = chunk.step
                 xy.append(np.asarray(chunk.xy, dtype=np.float64))
                 tris.append(np.asarray(chunk.triangles, dtype=np.uint32))
+                pids.append(np.asarray(chunk.point_ids, dtype=np.uint64))
         except grpc.RpcError as e:
             _raise(e)
-        return (step, np.concatenate(xy).reshape(-1, 2),
-                np.concatenate(tris).reshape(-1, 3))
+        positions = np.concatenate(xy).reshape(-1, 2)
+        ids = np.concatenate(pids) if pids else np.zeros(0, np.uint64)
+        if len(ids) != len(positions):
+            ids = np.arange(len(positions), dtype=np.uint64)
+        return Export(step, positions, np.concatenate(tris).reshape(-1, 3),
+                      ids)

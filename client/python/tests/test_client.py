@@ -11,8 +11,22 @@ import numpy as np
 from kinetri_client import Client, KinetriError
 
 
+def server_binary():
+    """KINETRI_SERVER, else the build tree's server (build/server)."""
+    binary = os.environ.get("KINETRI_SERVER")
+    if not binary:
+        here = os.path.dirname(os.path.abspath(__file__))
+        binary = os.path.join(here, "..", "..", "..", "build", "server",
+                              "kinetri-server")
+    if not os.path.exists(binary):
+        raise unittest.SkipTest(
+            f"no kinetri-server at {binary}: build it (bash scripts/build.sh) "
+            "or set KINETRI_SERVER")
+    return binary
+
+
 def start_server():
-    binary = os.environ["KINETRI_SERVER"]
+    binary = server_binary()
     proc = subprocess.Popen(
         [binary, "--listen=127.0.0.1:0", "--metrics_listen="],
         stdout=subprocess.PIPE, text=True)
@@ -100,6 +114,51 @@ class ClientTest(unittest.TestCase):
             d2 = ((pts[:, None, :] - pts[None, :, :]) ** 2).sum(-1)
             np.fill_diagonal(d2, np.inf)
             self.assertTrue(np.array_equal(nn.client_ids, ids[d2.argmin(1)]))
+            c.delete_session(s.name)
+
+    def test_client_ids_end_to_end(self):
+        rng = np.random.default_rng(9)
+        n = 400
+        pts = rng.random((n, 2))
+        ids = (np.arange(n, dtype=np.uint64) * 7919 + (1 << 40)).astype(
+            np.uint64)
+        with Client(self.target) as c:
+            s = c.create_session(pts, session_id="py-cids", ids=ids)
+            # k-NN of points named by client id, answered in client ids.
+            sel = ids[::37]
+            knn = c.knn(s.name, 3, ids=sel)
+            d2 = ((pts[:, None, :] - pts[None, :, :]) ** 2).sum(-1)
+            np.fill_diagonal(d2, np.inf)
+            for row, i in enumerate(range(0, n, 37)):
+                want = ids[np.argsort(d2[i], kind="stable")[:3]]
+                self.assertTrue(np.array_equal(knn.row(row), want))
+            # Sparse moves by client id.
+            steps = c.open_steps(s.name)
+            steps.move_to(np.array([[0.5, 0.5]]), ids=[ids[5]])
+            steps.close()
+            step, xy, tris = c.export(s.name)
+            self.assertEqual(step, 1)
+            exported = c.export(s.name)
+            self.assertTrue(np.array_equal(exported.ids, ids))
+            self.assertTrue(np.array_equal(exported.positions[5], [0.5, 0.5]))
+            # An unknown client id is NOT_FOUND.
+            with self.assertRaises(KinetriError) as e:
+                c.knn(s.name, 1, ids=[12345])
+            self.assertEqual(e.exception.code, grpc.StatusCode.NOT_FOUND)
+            c.delete_session(s.name)
+
+    def test_ids_never_wrap(self):
+        with Client(self.target) as c:
+            s = c.create_session(np.random.default_rng(7).random((50, 2)))
+            for bad in ([(1 << 32) + 1], [-1]):
+                with self.assertRaises(KinetriError) as e:
+                    c.knn(s.name, 1, ids=bad)
+                self.assertEqual(e.exception.code, grpc.StatusCode.NOT_FOUND)
+                steps = c.open_steps(s.name)
+                with self.assertRaises(KinetriError) as e:
+                    steps.move_by(np.zeros((1, 2)), ids=bad)
+                self.assertEqual(e.exception.code, grpc.StatusCode.NOT_FOUND)
+            self.assertEqual(c.get_session(s.name).step, 0)
             c.delete_session(s.name)
 
     def test_errors(self):
