@@ -1,7 +1,10 @@
 // Node.js client for the Kinetri proximity service (kinetri.v1).
 //
 // Positions are Float64Arrays of interleaved x, y; query results come back in
-// CSR form ({step, offsets, ids, distances}). Chunking is hidden.
+// CSR form ({step, offsets, ids, distances, clientIds}). Chunking is hidden.
+// Point ids are exact: sequential ids are checked to lie in uint32 range
+// (never wrapped), client ids (POINT_ID_POLICY_CLIENT sessions) are 64-bit
+// and come back as BigInt.
 'use strict';
 
 const path = require('path');
@@ -14,7 +17,9 @@ const CHUNK_VALUES = 2 * 131072;
 
 function loadService() {
   const def = protoLoader.loadSync(PROTO, {
-    keepCase: false, longs: Number, enums: String, defaults: true,
+    // 64-bit fields as strings (exact), converted below: counters and
+    // offsets to Number, client ids to BigInt.
+    keepCase: false, longs: String, enums: String, defaults: true,
     oneofs: true, includeDirs: [path.join(__dirname, '..', '..', 'proto')],
   });
   return grpc.loadPackageDefinition(def).kinetri.v1.KinetriService;
@@ -27,6 +32,42 @@ class KinetriError extends Error {
   }
 }
 
+// A session as returned by the server, with its 64-bit counters as Numbers.
+function toSession(s) {
+  return {...s, pointCount: Number(s.pointCount), siteCount: Number(s.siteCount),
+          step: Number(s.step)};
+}
+
+// Every 64-bit counter of a message (strings from the loader) as a Number.
+function numbers(obj) {
+  const out = {};
+  for (const [k, v] of Object.entries(obj)) {
+    out[k] = typeof v === 'string' && /^[0-9]+$/.test(v) ? Number(v) : v;
+  }
+  return out;
+}
+
+// Point ids for a request: client ids as decimal strings (exact 64-bit),
+// sequential ids checked to be integers in [0, 2^32) (NOT_FOUND otherwise,
+// as the server says for an id it does not know).
+function pointIds(ids, clientIds, field = 'ids') {
+  return Array.from(ids, (id, i) => {
+    let big;
+    try {
+      big = BigInt(id);
+    } catch (e) {
+      throw new KinetriError({code: grpc.status.INVALID_ARGUMENT,
+                              details: `${field}[${i}] = ${id}: not an integer`});
+    }
+    const max = clientIds ? (1n << 64n) : (1n << 32n);
+    if (big < 0n || big >= max) {
+      throw new KinetriError({code: grpc.status.NOT_FOUND,
+                              details: `${field}[${i}] = ${id}: no such point`});
+    }
+    return clientIds ? big.toString() : Number(big);
+  });
+}
+
 function wrap(promiseFn) {
   return new Promise((resolve, reject) => {
     promiseFn((err, value) => (err ? reject(new KinetriError(err))
@@ -35,8 +76,10 @@ function wrap(promiseFn) {
 }
 
 class StepStream {
-  constructor(stub, session, firstStep, chunkValues = CHUNK_VALUES) {
+  constructor(stub, session, firstStep, chunkValues = CHUNK_VALUES,
+              clientIds = false) {
     this.chunkValues = chunkValues;
+    this.clientIds = clientIds;
     this.session = session;
     this.nextStep = firstStep;
     this.call = stub.StreamSteps();
@@ -44,7 +87,10 @@ class StepStream {
     this.error = null;
     this.call.on('data', (resp) => {
       const p = this.pending.shift();
-      if (p) p.resolve(resp);
+      if (p) {
+        p.resolve({step: Number(resp.step),
+                   stats: resp.stats ? numbers(resp.stats) : resp.stats});
+      }
     });
     this.call.on('error', (err) => {
       this.error = new KinetriError(err);
@@ -56,7 +102,8 @@ class StepStream {
     });
   }
 
-  // deltas: Float64Array/Array of interleaved dx, dy; ids optional (sparse).
+  // deltas: Float64Array/Array of interleaved dx, dy; ids optional (sparse:
+  // the client's ids on POINT_ID_POLICY_CLIENT sessions).
   moveBy(deltas, ids) { return this.send('DISPLACEMENT_MODE_DELTA', deltas, ids); }
   moveTo(positions, ids) {
     return this.send('DISPLACEMENT_MODE_ABSOLUTE', positions, ids);
@@ -65,6 +112,15 @@ class StepStream {
   send(mode, values, ids) {
     if (this.error) return Promise.reject(this.error);
     const xy = Array.from(values);
+    let idList = null;
+    try {
+      if (ids) idList = pointIds(ids, this.clientIds);
+    } catch (e) {
+      return Promise.reject(e);
+    }
+    if (idList && 2 * idList.length !== xy.length) {
+      return Promise.reject(new Error('one (x, y) pair per id'));
+    }
     const result = new Promise((resolve, reject) => {
       this.pending.push({resolve, reject});
     });
@@ -72,7 +128,9 @@ class StepStream {
       const end = Math.min(xy.length, i + this.chunkValues);
       const req = {session: this.session, step: this.nextStep, mode,
                    xy: xy.slice(i, end), endOfStep: end === xy.length};
-      if (ids) req.ids = Array.from(ids).slice(i / 2, end / 2);
+      if (idList) {
+        req[this.clientIds ? 'clientIds' : 'ids'] = idList.slice(i / 2, end / 2);
+      }
       this.call.write(req);
       if (end >= xy.length) break;
     }
@@ -101,42 +159,96 @@ class Client {
 
   close() { this.stub.close(); }
 
-  createSession(xy, sessionId = '') {
-    return wrap((cb) => {
+  // ids (optional): one distinct 64-bit id per point (BigInt, Number or
+  // decimal string): a POINT_ID_POLICY_CLIENT session.
+  async createSession(xy, sessionId = '', {ids, threads = 0} = {}) {
+    const idList = ids ? pointIds(ids, true) : null;
+    if (idList && 2 * idList.length !== xy.length) {
+      throw new Error('one id per point');
+    }
+    const options = {threads, pointIdPolicy: idList ? 'POINT_ID_POLICY_CLIENT'
+                                                     : 'POINT_ID_POLICY_SEQUENTIAL'};
+    const s = await wrap((cb) => {
       const call = this.stub.CreateSession(cb);
-      call.write({header: {sessionId, pointCount: xy.length / 2, options: {}}});
+      call.write({header: {sessionId, pointCount: xy.length / 2, options}});
       for (let i = 0; i < xy.length; i += this.chunkValues) {
-        call.write({points: {xy: Array.from(xy.slice(i, i + this.chunkValues))}});
+        const points = {xy: Array.from(xy.slice(i, i + this.chunkValues))};
+        if (idList) points.ids = idList.slice(i / 2, (i + this.chunkValues) / 2);
+        call.write({points});
       }
       call.end();
     });
+    return toSession(s);
   }
 
-  getSession(name) { return wrap((cb) => this.stub.GetSession({name}, cb)); }
+  async getSession(name) {
+    return toSession(await wrap((cb) => this.stub.GetSession({name}, cb)));
+  }
+
+  // Every session, following the pages.
+  async listSessions() {
+    const out = [];
+    let pageToken = '';
+    do {
+      const r = await wrap((cb) =>
+        this.stub.ListSessions({pageSize: 100, pageToken}, cb));
+      for (const s of r.sessions) out.push(toSession(s));
+      pageToken = r.nextPageToken;
+    } while (pageToken);
+    return out;
+  }
+
   deleteSession(name) {
+    if (this.policies) this.policies.delete(name);
     return wrap((cb) => this.stub.DeleteSession({name}, cb));
   }
 
   async openSteps(name) {
     const s = await this.getSession(name);
-    return new StepStream(this.stub, name, s.step + 1, this.chunkValues);
+    return new StepStream(this.stub, name, s.step + 1, this.chunkValues,
+                          s.options.pointIdPolicy === 'POINT_ID_POLICY_CLIENT');
+  }
+
+  // Whether a session names its points with client ids (asked once).
+  async usesClientIds(name) {
+    if (!this.policies) this.policies = new Map();
+    if (!this.policies.has(name)) {
+      const s = await this.getSession(name);
+      this.policies.set(name,
+                        s.options.pointIdPolicy === 'POINT_ID_POLICY_CLIENT');
+    }
+    return this.policies.get(name);
+  }
+
+  async targets(req, session, positions, ids) {
+    if (positions) {
+      req.positions = {xy: Array.from(positions)};
+    } else if (ids) {
+      const client = await this.usesClientIds(session);
+      req.pointIds = {[client ? 'clientIds' : 'ids']: pointIds(ids, client)};
+    } else {
+      req.allPoints = {};
+    }
   }
 
   query(request) {
     return new Promise((resolve, reject) => {
       const out = {step: 0, offsets: [0], ids: [], distances: [],
-                   truncatedRows: []};
+                   truncatedRows: [], clientIds: []};
       const call = this.stub.Query(request);
       call.on('data', (chunk) => {
-        out.step = chunk.step;
-        const base = out.ids.length;
+        out.step = Number(chunk.step);
+        const base = out.ids.length + out.clientIds.length;
         const row0 = out.offsets.length - 1;
         for (let i = 1; i < chunk.offsets.length; i++) {
-          out.offsets.push(base + chunk.offsets[i]);
+          out.offsets.push(base + Number(chunk.offsets[i]));
         }
         for (const id of chunk.ids) out.ids.push(id);
+        for (const id of chunk.clientIds) out.clientIds.push(BigInt(id));
         for (const d of chunk.distances) out.distances.push(d);
-        for (const r of chunk.truncatedRows) out.truncatedRows.push(row0 + r);
+        for (const r of chunk.truncatedRows) {
+          out.truncatedRows.push(row0 + Number(r));
+        }
       });
       call.on('error', (err) => reject(new KinetriError(err)));
       call.on('end', () => resolve(out));
@@ -148,32 +260,33 @@ class Client {
                        includeDistances: true, allPoints: {}});
   }
 
-  kNearest(session, k, {positions, ids, excludeSelf = true} = {}) {
+  // Targets: positions (interleaved x, y), ids (client ids on
+  // POINT_ID_POLICY_CLIENT sessions) or, when neither, all points.
+  async kNearest(session, k, {positions, ids, excludeSelf = true} = {}) {
     const req = {session, kind: 'QUERY_KIND_K_NEAREST', k, excludeSelf,
                  includeDistances: true};
-    if (positions) req.positions = {xy: Array.from(positions)};
-    else if (ids) req.pointIds = {ids: Array.from(ids)};
-    else req.allPoints = {};
+    await this.targets(req, session, positions, ids);
     return this.query(req);
   }
 
-  radius(session, r, {positions, ids, excludeSelf = true, maxPerRow = 0} = {}) {
+  async radius(session, r,
+               {positions, ids, excludeSelf = true, maxPerRow = 0} = {}) {
     const req = {session, kind: 'QUERY_KIND_RADIUS', radius: r, excludeSelf,
                  includeDistances: true, maxResultsPerRow: maxPerRow};
-    if (positions) req.positions = {xy: Array.from(positions)};
-    else if (ids) req.pointIds = {ids: Array.from(ids)};
-    else req.allPoints = {};
+    await this.targets(req, session, positions, ids);
     return this.query(req);
   }
 
   exportTriangulation(session) {
     return new Promise((resolve, reject) => {
-      const out = {step: 0, xy: [], triangles: []};
+      // pointIds: the client ids of the positions (client-id sessions).
+      const out = {step: 0, xy: [], triangles: [], pointIds: []};
       const call = this.stub.ExportTriangulation({session});
       call.on('data', (c) => {
-        out.step = c.step;
+        out.step = Number(c.step);
         for (const v of c.xy) out.xy.push(v);
         for (const v of c.triangles) out.triangles.push(v);
+        for (const v of c.pointIds) out.pointIds.push(BigInt(v));
       });
       call.on('error', (err) => reject(new KinetriError(err)));
       call.on('end', () => resolve(out));

@@ -7,9 +7,14 @@ const {spawn} = require('node:child_process');
 const readline = require('node:readline');
 const {Client, status} = require('..');
 
+// KINETRI_SERVER, else the build tree's server.
+const SERVER = process.env.KINETRI_SERVER ||
+    require('node:path').join(__dirname, '..', '..', '..', 'build', 'server',
+                              'kinetri-server');
+
 function startServer() {
   return new Promise((resolve, reject) => {
-    const proc = spawn(process.env.KINETRI_SERVER,
+    const proc = spawn(SERVER,
                        ['--listen=127.0.0.1:0', '--metrics_listen=']);
     const rl = readline.createInterface({input: proc.stdout});
     rl.on('line', (line) => {
@@ -96,5 +101,55 @@ test('create, step, query against brute force, export, errors', async () => {
   } finally {
     client.close();
     proc.kill('SIGTERM');
+  }
+});
+
+test('client ids: 64-bit, exact, end to end; sequential ids never wrap',
+     async () => {
+  const {proc, target} = await startServer();
+  const client = new Client(target);
+  try {
+    const rand = rng(11);
+    const n = 300;
+    const xy = new Float64Array(2 * n).map(() => rand());
+    const ids = Array.from({length: n}, (_, i) => (1n << 40n) + BigInt(i) * 7919n);
+    const s = await client.createSession(xy, 'node-cids', {ids});
+    assert.strictEqual(s.options.pointIdPolicy, 'POINT_ID_POLICY_CLIENT');
+    const all = await client.listSessions();
+    assert.ok(all.some((x) => x.name === s.name));
+    // k-NN of points named by client id, answered in client ids.
+    const knn = await client.kNearest(s.name, 2, {ids: [ids[10], ids[20]]});
+    assert.strictEqual(knn.ids.length, 0);
+    for (const [row, i] of [[0, 10], [1, 20]]) {
+      const d = [];
+      for (let j = 0; j < n; j++) {
+        if (j !== i) {
+          d.push([(xy[2 * j] - xy[2 * i]) ** 2 + (xy[2 * j + 1] - xy[2 * i + 1]) ** 2, j]);
+        }
+      }
+      d.sort((a, b) => a[0] - b[0]);
+      assert.deepStrictEqual(knn.clientIds.slice(knn.offsets[row], knn.offsets[row + 1]),
+                             [ids[d[0][1]], ids[d[1][1]]]);
+    }
+    const steps = await client.openSteps(s.name);
+    const ack = await steps.moveTo([0.5, 0.5], [ids[5]]);
+    assert.strictEqual(ack.step, 1);
+    await steps.close();
+    const mesh = await client.exportTriangulation(s.name);
+    assert.deepStrictEqual(mesh.pointIds, ids);
+    assert.deepStrictEqual([mesh.xy[10], mesh.xy[11]], [0.5, 0.5]);
+    await assert.rejects(client.kNearest(s.name, 1, {ids: [12345n]}),
+                         (e) => e.code === status.NOT_FOUND);
+    // Sequential sessions: 2^32 + 1 is not point 1.
+    const q = await client.createSession(xy.slice(0, 100), 'node-seq');
+    await assert.rejects(client.kNearest(q.name, 1, {ids: [2 ** 32 + 1]}),
+                         (e) => e.code === status.NOT_FOUND);
+    const st = await client.openSteps(q.name);
+    await assert.rejects(st.moveBy([0.1, 0.1], [2 ** 32 + 1]),
+                         (e) => e.code === status.NOT_FOUND);
+    await st.close();
+  } finally {
+    client.close();
+    proc.kill();
   }
 });
