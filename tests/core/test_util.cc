@@ -103,6 +103,20 @@ EdgeList EdgesAsPositions(const core::Triangulation& t) {
   return out;
 }
 
+EdgeList EdgesOfTriangles(const std::vector<Vec2>& points,
+                          const std::vector<uint32_t>& triangles) {
+  EdgeList out;
+  for (size_t t = 0; t + 2 < triangles.size(); t += 3) {
+    for (int k = 0; k < 3; ++k) {
+      out.push_back(
+          Normal(points[triangles[t + k]], points[triangles[t + (k + 1) % 3]]));
+    }
+  }
+  std::sort(out.begin(), out.end(), PairLess);
+  out.erase(std::unique(out.begin(), out.end()), out.end());
+  return out;
+}
+
 std::vector<uint32_t> BruteRank(const std::vector<Vec2>& pts, const Vec2& q,
                                 uint32_t self) {
   std::vector<uint32_t> ids;

@@ -28,6 +28,10 @@ std::vector<Vec2> WithDuplicates(size_t n, int copies, uint64_t seed);
 EdgeList CgalDelaunayEdges(const std::vector<Vec2>& points);
 // The triangulation's edges as position pairs, in the same normal form.
 EdgeList EdgesAsPositions(const core::Triangulation& t);
+// The edges of triangles given as index triples into `points` (flat i, j,
+// k, ...), in the same normal form.
+EdgeList EdgesOfTriangles(const std::vector<Vec2>& points,
+                          const std::vector<uint32_t>& triangles);
 
 bool operator<(const Vec2& a, const Vec2& b);
 
