@@ -198,6 +198,25 @@ void AppendStarAndHullRingFrom(const MeshView& m, uint32_t e0,
   }
 }
 
+// The half-edges of the triangles around the origin of e0 and of the
+// triangles on both sides of the logged flips: what legalizing after a held
+// vertex's move must test. `around` is scratch.
+void SeedLegalizeAfterMove(const MeshView& m, uint32_t e0,
+                           const std::vector<uint32_t>& log,
+                           std::vector<uint32_t>* around,
+                           std::vector<uint32_t>* stack) {
+  stack->clear();
+  around->clear();
+  AppendStarFrom(m, e0, around);
+  for (uint32_t e : log) {
+    around->push_back(TriangleOf(e));
+    around->push_back(TriangleOf(m.twin[e]));
+  }
+  for (uint32_t t : *around) {
+    for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) stack->push_back(e);
+  }
+}
+
 // The same from vertex_edge (which must be valid for v).
 void AppendStar(const Mesh& mesh, uint32_t v, std::vector<uint32_t>* out) {
   AppendStarFrom(mesh.view(), mesh.vertex_edge()[v], out);
@@ -266,6 +285,19 @@ std::optional<Vec2> Halfway(const Vec2& a, const Vec2& b) {
 double Dist2(const Vec2& a, const Vec2& b) {
   const double dx = a.x - b.x, dy = a.y - b.y;
   return dx * dx + dy * dy;
+}
+
+// After a failed move from `from` towards *goal: the next goal is halfway
+// (false when max_halvings are used up or the halfway point is not new).
+bool Bisect(const Vec2& from, const RegionStepPolicy& policy, Vec2* goal,
+            int* halvings, RegionStepStats* stats) {
+  if (*halvings >= policy.max_halvings) return false;
+  const std::optional<Vec2> h = Halfway(from, *goal);
+  if (!h) return false;
+  ++*halvings;
+  ++stats->halvings;
+  *goal = *h;
+  return true;
 }
 
 }  // namespace
@@ -527,16 +559,7 @@ bool RegionExecutor::MoveHeldInRegion(Mesh& mesh, uint32_t v,
     }
     if (waiting.empty()) {
       counts += c;
-      stack.clear();
-      around.clear();
-      AppendStarFrom(m, mesh.vertex_edge()[v], &around);
-      for (uint32_t e : log) {
-        around.push_back(TriangleOf(e));
-        around.push_back(TriangleOf(m.twin[e]));
-      }
-      for (uint32_t t : around) {
-        for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) stack.push_back(e);
-      }
+      SeedLegalizeAfterMove(m, mesh.vertex_edge()[v], log, &around, &stack);
       // Edges that cross the region are legalized in the serial pass.
       LegalizeLoop<true, true>(m, p, b, stack, *late_edges, &counts,
                                tri_mark_.data(), &mesh);
@@ -549,15 +572,10 @@ bool RegionExecutor::MoveHeldInRegion(Mesh& mesh, uint32_t v,
     }
     Undo(m, log, &mesh);
     cur_[v] = old;
-    std::optional<Vec2> h;
-    if (halvings < policy.max_halvings) h = Halfway(old, goal);
-    if (!h) {
+    if (!Bisect(old, policy, &goal, &halvings, stats)) {
       stats->flips += counts;
       return false;
     }
-    ++halvings;
-    ++stats->halvings;
-    goal = *h;
   }
 }
 
@@ -593,16 +611,7 @@ bool RegionExecutor::MoveHeld(Mesh& mesh, uint32_t v, const Vec2& target,
     if (ok) {
       counts += c;
       // Legalize around v and wherever fixing flipped.
-      stack.clear();
-      around.clear();
-      AppendStar(mesh, v, &around);
-      for (uint32_t e : log) {
-        around.push_back(TriangleOf(e));
-        around.push_back(TriangleOf(m.twin[e]));
-      }
-      for (uint32_t t : around) {
-        for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) stack.push_back(e);
-      }
+      SeedLegalizeAfterMove(m, mesh.vertex_edge()[v], log, &around, &stack);
       LegalizeLoop<false>(m, p, Bounds{}, stack, deferred, &counts,
                           tri_mark_.data(), &mesh);
       if (goal == target) {
@@ -614,15 +623,10 @@ bool RegionExecutor::MoveHeld(Mesh& mesh, uint32_t v, const Vec2& target,
     }
     Undo(m, log, &mesh);
     cur_[v] = old;
-    std::optional<Vec2> h;
-    if (halvings < policy.max_halvings) h = Halfway(old, goal);
-    if (!h) {
+    if (!Bisect(old, policy, &goal, &halvings, stats)) {
       stats->flips += counts;
       return false;
     }
-    ++halvings;
-    ++stats->halvings;
-    goal = *h;
   }
 }
 
