@@ -13,6 +13,7 @@
 #include <vector>
 
 #include "client/cpp/kinetri_client.h"
+#include "tests/e2e/raw_call.h"
 #include "tests/e2e/server_process.h"
 
 namespace kinetri {
@@ -251,39 +252,13 @@ TEST_F(HardeningTest, LongNamesAreCutInErrors) {
   EXPECT_LT(c.status().message().size(), 300u);
 }
 
-// Sends raw messages on a client-streaming or bidi method and returns the
-// call's final status.
+// Raw bytes on a method of the server at `target`.
 grpc::Status SendRawStream(const std::string& target, const std::string& method,
                            const std::vector<std::string>& messages) {
   auto channel =
       grpc::CreateChannel(target, grpc::InsecureChannelCredentials());
   grpc::GenericStub stub(channel);
-  grpc::ClientContext ctx;
-  ctx.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(10));
-  grpc::CompletionQueue cq;
-  auto call = stub.PrepareCall(&ctx, method, &cq);
-  void* tag;
-  bool ok;
-  call->StartCall(reinterpret_cast<void*>(1));
-  cq.Next(&tag, &ok);
-  for (const std::string& bytes : messages) {
-    grpc::Slice slice(bytes);
-    grpc::ByteBuffer buffer(&slice, 1);
-    call->Write(buffer, reinterpret_cast<void*>(2));
-    cq.Next(&tag, &ok);
-  }
-  call->WritesDone(reinterpret_cast<void*>(3));
-  cq.Next(&tag, &ok);
-  grpc::ByteBuffer response;
-  call->Read(&response, reinterpret_cast<void*>(4));
-  cq.Next(&tag, &ok);
-  grpc::Status status;
-  call->Finish(&status, reinterpret_cast<void*>(5));
-  cq.Next(&tag, &ok);
-  cq.Shutdown();
-  while (cq.Next(&tag, &ok)) {
-  }
-  return status;
+  return testing::SendRaw(stub, method, messages, 10);
 }
 
 // Defect 9: corrupt protobuf bytes on a stream. gRPC's synchronous API

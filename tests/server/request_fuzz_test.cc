@@ -27,6 +27,7 @@
 #include "server/metrics.h"
 #include "server/service.h"
 #include "server/session_registry.h"
+#include "tests/e2e/raw_call.h"
 
 namespace kinetri::server {
 namespace {
@@ -213,41 +214,7 @@ class Fuzzer {
   std::mt19937_64 rng_;
 };
 
-// Sends raw messages on `method`; returns the status (DEADLINE_EXCEEDED if
-// the server did not finish the call in time).
-grpc::Status Send(grpc::GenericStub& stub, const std::string& method,
-                  const std::vector<std::string>& messages) {
-  grpc::ClientContext ctx;
-  ctx.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(20));
-  grpc::CompletionQueue cq;
-  auto call = stub.PrepareCall(&ctx, method, &cq);
-  void* tag;
-  bool ok;
-  call->StartCall(reinterpret_cast<void*>(1));
-  cq.Next(&tag, &ok);
-  for (const std::string& bytes : messages) {
-    if (!ok) break;
-    grpc::Slice slice(bytes);
-    grpc::ByteBuffer buffer(&slice, 1);
-    call->Write(buffer, reinterpret_cast<void*>(2));
-    cq.Next(&tag, &ok);
-  }
-  call->WritesDone(reinterpret_cast<void*>(3));
-  cq.Next(&tag, &ok);
-  while (true) {  // drain responses
-    grpc::ByteBuffer response;
-    call->Read(&response, reinterpret_cast<void*>(4));
-    cq.Next(&tag, &ok);
-    if (!ok) break;
-  }
-  grpc::Status status;
-  call->Finish(&status, reinterpret_cast<void*>(5));
-  cq.Next(&tag, &ok);
-  cq.Shutdown();
-  while (cq.Next(&tag, &ok)) {
-  }
-  return status;
-}
+using testing::SendRaw;
 
 TEST(RequestFuzz, EveryCallEndsAndSessionsStayDelaunay) {
   // Parsing mutated strings makes protobuf log invalid UTF-8 by the
@@ -293,8 +260,8 @@ TEST(RequestFuzz, EveryCallEndsAndSessionsStayDelaunay) {
     for (int i = 0; i < 2 * n; ++i) {
       p.mutable_points()->add_xy(std::uniform_real_distribution<double>()(rng));
     }
-    ASSERT_TRUE(Send(stub, "/kinetri.v1.KinetriService/CreateSession",
-                     {h.SerializeAsString(), p.SerializeAsString()})
+    ASSERT_TRUE(SendRaw(stub, "/kinetri.v1.KinetriService/CreateSession",
+                        {h.SerializeAsString(), p.SerializeAsString()})
                     .ok());
   }
   const auto end = Clock::now() + std::chrono::duration_cast<Clock::duration>(
@@ -303,7 +270,7 @@ TEST(RequestFuzz, EveryCallEndsAndSessionsStayDelaunay) {
   std::map<int, int> codes;
   while (Clock::now() < end) {
     const auto [method, msgs] = fuzz.Call();
-    const grpc::Status st = Send(stub, method, msgs);
+    const grpc::Status st = SendRaw(stub, method, msgs);
     ASSERT_NE(st.error_code(), grpc::StatusCode::DEADLINE_EXCEEDED)
         << "call " << calls << " (seed " << seed << ") to " << method
         << " did not end";
