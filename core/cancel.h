@@ -11,6 +11,7 @@
 
 #include <atomic>
 #include <chrono>
+#include <cstdint>
 #include <functional>
 #include <string>
 #include <utility>
@@ -27,21 +28,36 @@ class CancelToken {
   CancelToken() = default;
   // Fires when `cancelled` returns true or `deadline` has passed (either may
   // be omitted: an empty function, or Clock::time_point::max()).
-  explicit CancelToken(std::function<bool()> cancelled,
-                       Clock::time_point deadline = Clock::time_point::max())
-      : cancelled_(std::move(cancelled)), deadline_(deadline) {}
+  // `check_interval`: how often at most `cancelled` runs (0: at every poll).
+  explicit CancelToken(
+      std::function<bool()> cancelled,
+      Clock::time_point deadline = Clock::time_point::max(),
+      Clock::duration check_interval = std::chrono::milliseconds(1))
+      : cancelled_(std::move(cancelled)),
+        deadline_(deadline),
+        check_interval_(check_interval) {}
 
   CancelToken(const CancelToken&) = delete;
   CancelToken& operator=(const CancelToken&) = delete;
 
-  // True once the token has fired (sticky).
+  // True once the token has fired (sticky). Cheap to poll often: the
+  // caller's check (which may cost microseconds, e.g. gRPC's IsCancelled)
+  // runs at most once per check interval; the deadline is exact.
   bool Cancelled() const {
     if (fired_.load(std::memory_order_relaxed) != kNo) return true;
+    const Clock::time_point now = Clock::now();
     int why = kNo;
-    if (deadline_ != Clock::time_point::max() && Clock::now() >= deadline_) {
+    if (deadline_ != Clock::time_point::max() && now >= deadline_) {
       why = kDeadline;
-    } else if (cancelled_ && cancelled_()) {
-      why = kCancelled;
+    } else if (cancelled_) {
+      const int64_t t = now.time_since_epoch().count();
+      int64_t next = next_check_.load(std::memory_order_relaxed);
+      if (t >= next &&
+          next_check_.compare_exchange_strong(next, t + check_interval_.count(),
+                                              std::memory_order_relaxed) &&
+          cancelled_()) {
+        why = kCancelled;
+      }
     }
     if (why == kNo) return false;
     int expected = kNo;
@@ -68,7 +84,9 @@ class CancelToken {
  private:
   enum : int { kNo = 0, kCancelled = 1, kDeadline = 2 };
   std::function<bool()> cancelled_;
+  mutable std::atomic<int64_t> next_check_{0};
   Clock::time_point deadline_ = Clock::time_point::max();
+  Clock::duration check_interval_ = Clock::duration::zero();
   mutable std::atomic<int> fired_{kNo};
 };
 

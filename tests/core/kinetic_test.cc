@@ -388,7 +388,9 @@ TEST(Kinetic, CancelledStepLeavesThePreviousStep) {
   int fired_at = -1;
   for (int k = 0; k < 100000; ++k) {
     int polls = 0;
-    CancelToken token([&] { return ++polls > k; });
+    CancelToken token([&] { return ++polls > k; },
+                      CancelToken::Clock::time_point::max(),
+                      CancelToken::Clock::duration::zero());
     auto r = t->ApplyDisplacements(step, &token);
     if (r.ok()) {
       fired_at = k;
