@@ -5,3 +5,9 @@ cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 bash scripts/build.sh
 ctest --test-dir build --output-on-failure -j "$(nproc)"
+# The suite again under AddressSanitizer + UndefinedBehaviorSanitizer
+# (./build-asan, about 10 minutes on 2 cores); KINETRI_SKIP_SANITIZERS=1
+# skips it.
+if [[ "${KINETRI_SKIP_SANITIZERS:-0}" != 1 ]]; then
+  bash scripts/test_sanitizers.sh
+fi
