@@ -37,7 +37,8 @@ ABSL_FLAG(std::string, executor, "regions",
 ABSL_FLAG(uint32_t, region_triangles, 0,
           "triangles per region of the region executor (0 = its default)");
 ABSL_FLAG(int, max_subdivision_depth, -1,
-          "round executor: override RoundStepPolicy::max_subdivision_depth (-1: default)");
+          "round executor: override RoundStepPolicy::max_subdivision_depth "
+          "(-1: default)");
 
 namespace {
 
@@ -124,7 +125,8 @@ int main(int argc, char** argv) {
     opt.region.region_triangles = absl::GetFlag(FLAGS_region_triangles);
   }
   if (absl::GetFlag(FLAGS_max_subdivision_depth) >= 0) {
-    opt.round.max_subdivision_depth = absl::GetFlag(FLAGS_max_subdivision_depth);
+    opt.round.max_subdivision_depth =
+        absl::GetFlag(FLAGS_max_subdivision_depth);
   }
   auto t0 = Clock::now();
   auto tri = kinetri::core::Triangulation::Create(pts, opt);
