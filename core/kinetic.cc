@@ -26,14 +26,6 @@ void SortUnique(std::vector<uint32_t>& v) {
   v.erase(std::unique(v.begin(), v.end()), v.end());
 }
 
-inline void AtomicMin(uint32_t* slot, uint32_t value) {
-  std::atomic_ref<uint32_t> ref(*slot);
-  uint32_t cur = ref.load(std::memory_order_relaxed);
-  while (value < cur &&
-         !ref.compare_exchange_weak(cur, value, std::memory_order_relaxed)) {
-  }
-}
-
 inline uint32_t Canonical(const MeshView& m, uint32_t e) {
   return std::min(e, m.twin[e]);
 }

@@ -13,11 +13,22 @@
 #include <tbb/parallel_for.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cstddef>
 #include <cstdint>
 #include <vector>
 
 namespace kinetri::core {
+
+// *slot = min(*slot, value), atomically (relaxed): deterministic claims and
+// vertex-edge repair whatever the thread order.
+inline void AtomicMin(uint32_t* slot, uint32_t value) {
+  std::atomic_ref<uint32_t> ref(*slot);
+  uint32_t cur = ref.load(std::memory_order_relaxed);
+  while (value < cur &&
+         !ref.compare_exchange_weak(cur, value, std::memory_order_relaxed)) {
+  }
+}
 
 // Calls fn(i) for i in [begin, end) in parallel.
 template <typename Fn>

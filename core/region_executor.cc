@@ -257,14 +257,6 @@ void ScanRange(const MeshView& m, const Vec2* p, uint32_t lo, uint32_t hi,
   }
 }
 
-inline void AtomicMin(uint32_t* slot, uint32_t value) {
-  std::atomic_ref<uint32_t> ref(*slot);
-  uint32_t cur = ref.load(std::memory_order_relaxed);
-  while (value < cur &&
-         !ref.compare_exchange_weak(cur, value, std::memory_order_relaxed)) {
-  }
-}
-
 void Undo(const MeshView& m, const std::vector<uint32_t>& log, Mesh* mesh) {
   for (auto it = log.rbegin(); it != log.rend(); ++it) {
     m.Flip(*it);

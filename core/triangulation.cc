@@ -103,6 +103,12 @@ const char* UpdatePathName(UpdatePath path) {
   return "unknown";
 }
 
+// The thread arena of a triangulation (0 threads: all cores).
+static std::unique_ptr<tbb::task_arena> MakeArena(int num_threads) {
+  return num_threads > 0 ? std::make_unique<tbb::task_arena>(num_threads)
+                         : std::make_unique<tbb::task_arena>();
+}
+
 struct Triangulation::AdjacencyCache {
   std::mutex mu;
   bool valid = false;
@@ -161,9 +167,7 @@ absl::StatusOr<Triangulation> Triangulation::Create(
   Triangulation t;
   t.options_ = options;
   t.adjacency_ = std::make_unique<AdjacencyCache>();
-  t.arena_ = options.num_threads > 0
-                 ? std::make_unique<tbb::task_arena>(options.num_threads)
-                 : std::make_unique<tbb::task_arena>();
+  t.arena_ = MakeArena(options.num_threads);
   std::vector<Vec2> copy(points.begin(), points.end());
   t.Run([&] { t.Rebuild(copy); });
   return t;
@@ -173,9 +177,7 @@ Triangulation Triangulation::Clone() const {
   Triangulation t;
   t.options_ = options_;
   t.adjacency_ = std::make_unique<AdjacencyCache>();
-  t.arena_ = options_.num_threads > 0
-                 ? std::make_unique<tbb::task_arena>(options_.num_threads)
-                 : std::make_unique<tbb::task_arena>();
+  t.arena_ = MakeArena(options_.num_threads);
   t.pos_ = pos_;
   t.ext_of_int_ = ext_of_int_;
   t.int_of_ext_ = int_of_ext_;
