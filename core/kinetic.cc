@@ -119,6 +119,25 @@ std::vector<uint32_t> KineticExecutor::TrianglesAround(
   return out;
 }
 
+std::vector<uint32_t> KineticExecutor::CandidateTriangles(
+    const Mesh& mesh, const std::vector<uint32_t>& moved) {
+  const MeshView m = mesh.view();
+  // Hull turns of neighbours of moved vertices change too: include the
+  // triangles around the moved vertices' neighbours' spokes by taking the
+  // two-ring of ghost triangles (cheap: only ghosts are re-examined).
+  std::vector<uint32_t> around = TrianglesAround(mesh, moved);
+  std::vector<uint32_t> extra;
+  for (uint32_t t : around) {
+    if (!m.IsGhost(t)) continue;
+    for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
+      extra.push_back(TriangleOf(m.twin[e]));
+    }
+  }
+  around.insert(around.end(), extra.begin(), extra.end());
+  SortUnique(around);
+  return around;
+}
+
 std::vector<uint32_t> KineticExecutor::FindInvalidTriangles(
     const Mesh& mesh, const std::vector<Vec2>& pos,
     const std::vector<uint32_t>* moved) {
@@ -129,19 +148,7 @@ std::vector<uint32_t> KineticExecutor::FindInvalidTriangles(
       return !rules::TriangleOk(m, p, static_cast<uint32_t>(t));
     });
   }
-  // Hull turns of neighbours of moved vertices change too: include the
-  // triangles around the moved vertices' neighbours' spokes by taking the
-  // two-ring of ghost triangles (cheap: only ghosts are re-examined).
-  std::vector<uint32_t> around = TrianglesAround(mesh, *moved);
-  std::vector<uint32_t> extra;
-  for (uint32_t t : around) {
-    if (!m.IsGhost(t)) continue;
-    for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
-      extra.push_back(TriangleOf(m.twin[e]));
-    }
-  }
-  around.insert(around.end(), extra.begin(), extra.end());
-  SortUnique(around);
+  std::vector<uint32_t> around = CandidateTriangles(mesh, *moved);
   std::vector<uint32_t> idx = Filter(around.size(), [&](size_t i) {
     return !rules::TriangleOk(m, p, around[i]);
   });
@@ -161,8 +168,7 @@ void FlipScratch::Ensure(const Mesh& mesh) {
 bool KineticExecutor::Fix(Mesh& mesh, const std::vector<Vec2>& pos,
                           std::vector<uint32_t> invalid, FlipScratch& scratch,
                           FlipCounts* counts, std::vector<uint32_t>* touched,
-                          std::vector<uint32_t>* log,
-                          std::vector<uint32_t>* stuck) {
+                          FixLog* log, std::vector<uint32_t>* stuck) {
   const MeshView m = mesh.view();
   const Vec2* p = pos.data();
   scratch.Ensure(mesh);
@@ -224,10 +230,18 @@ bool KineticExecutor::Fix(Mesh& mesh, const std::vector<Vec2>& pos,
     }
     ParallelFor(0, winners.size(),
                 [&](size_t i) { m.Flip(edges[winners[i]]); });
-    for (uint32_t w : winners) mesh.UpdateVertexEdgesAfterFlip(edges[w]);
     if (log) {
-      for (uint32_t w : winners) log->push_back(edges[w]);
+      const auto& ve = mesh.vertex_edge();
+      for (uint32_t w : winners) {
+        const uint32_t e = edges[w], f = m.twin[e];
+        for (uint32_t h : {e, Prev(e), f, Prev(f)}) {  // the quad's corners
+          const uint32_t v = m.origin[h];
+          if (v != kInfiniteVertex) log->vertex_edges.emplace_back(v, ve[v]);
+        }
+        log->flips.push_back(e);
+      }
     }
+    for (uint32_t w : winners) mesh.UpdateVertexEdgesAfterFlip(edges[w]);
     if (counts) {
       ++counts->fix_rounds;
       for (uint32_t w : winners) {
@@ -261,13 +275,17 @@ bool KineticExecutor::Fix(Mesh& mesh, const std::vector<Vec2>& pos,
   return false;
 }
 
-void KineticExecutor::Undo(Mesh& mesh, const std::vector<uint32_t>& log) {
+void KineticExecutor::Undo(Mesh& mesh, const FixLog& log) {
   const MeshView m = mesh.view();
-  for (auto it = log.rbegin(); it != log.rend(); ++it) {
+  for (auto it = log.flips.rbegin(); it != log.flips.rend(); ++it) {
     m.Flip(*it);
     m.Flip(*it);
     m.Flip(*it);
-    mesh.UpdateVertexEdgesAfterFlip(*it);
+  }
+  auto& ve = mesh.mutable_vertex_edge();
+  for (auto it = log.vertex_edges.rbegin(); it != log.vertex_edges.rend();
+       ++it) {
+    ve[it->first] = it->second;
   }
 }
 

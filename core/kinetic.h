@@ -11,6 +11,7 @@
 #define KINETRI_CORE_KINETIC_H_
 
 #include <cstdint>
+#include <utility>
 #include <vector>
 
 #include "core/mesh.h"
@@ -56,6 +57,14 @@ struct RoundStepPolicy {
   uint32_t min_sites_left = 8;
 };
 
+// What Fix changed, so that Undo can restore the mesh exactly (vertex_edge
+// included): the flipped edges in order and the vertex_edge entries they
+// overwrote.
+struct FixLog {
+  std::vector<uint32_t> flips;
+  std::vector<std::pair<uint32_t, uint32_t>> vertex_edges;  // (v, old edge)
+};
+
 // Claim arrays reused across rounds and calls (all entries kNoEdge between
 // uses).
 struct FlipScratch {
@@ -73,19 +82,27 @@ class KineticExecutor {
       const Mesh& mesh, const std::vector<Vec2>& pos,
       const std::vector<uint32_t>* moved);
 
+  // The triangles a sparse pass examines for the moved vertices: their
+  // stars plus the ghost triangles next to ghosts among them (hull turns of
+  // their neighbours change too). Sorted, unique.
+  static std::vector<uint32_t> CandidateTriangles(
+      const Mesh& mesh, const std::vector<uint32_t>& moved);
+
   // Repairs the given invalid triangles by flips. Returns true iff the mesh
   // is afterwards a valid triangulation of pos (embedding, convex hull).
   // `touched` receives the triangles changed by flips, `log` the flipped
   // edges in order (for Undo) and, on failure, `stuck` the triangles left
-  // invalid. vertex_edge is kept valid.
+  // invalid. vertex_edge is kept valid (after each round's flips, as
+  // Mesh::UpdateVertexEdgesAfterFlip sets it in winner order).
   static bool Fix(Mesh& mesh, const std::vector<Vec2>& pos,
                   std::vector<uint32_t> invalid, FlipScratch& scratch,
                   FlipCounts* counts, std::vector<uint32_t>* touched,
-                  std::vector<uint32_t>* log, std::vector<uint32_t>* stuck);
+                  FixLog* log, std::vector<uint32_t>* stuck);
 
   // Reverts the flips recorded by Fix (a flip applied four times is the
-  // identity, so each logged flip is undone by three more, newest first).
-  static void Undo(Mesh& mesh, const std::vector<uint32_t>& log);
+  // identity, so each logged flip is undone by three more, newest first)
+  // and restores vertex_edge: the mesh is then exactly as before Fix.
+  static void Undo(Mesh& mesh, const FixLog& log);
 
   // Delaunay flips until every edge is locally Delaunay. Starts from all
   // edges of the triangles in `seed_triangles`, or from all edges if null.

@@ -17,6 +17,13 @@ Mesh::Mesh(uint32_t num_vertices, std::vector<uint32_t> origin,
   RebuildVertexEdges();
 }
 
+void Mesh::Assign(std::vector<uint32_t> origin, std::vector<uint32_t> twin,
+                  std::vector<uint32_t> vertex_edge) {
+  origin_ = std::move(origin);
+  twin_ = std::move(twin);
+  vertex_edge_ = std::move(vertex_edge);
+}
+
 void Mesh::RebuildVertexEdges() {
   vertex_edge_.assign(num_vertices_, kNoEdge);
   uint32_t* ve = vertex_edge_.data();

@@ -87,6 +87,18 @@ DisplacementBatch DisplacementBatch::AbsoluteSparse(
   return {Mode::kAbsolute, std::move(ids), std::move(positions)};
 }
 
+const char* ExecutorName(Executor executor) {
+  switch (executor) {
+    case Executor::kRegions:
+      return "regions";
+    case Executor::kRounds:
+      return "rounds";
+    case Executor::kDevice:
+      return "device";
+  }
+  return "unknown";
+}
+
 const char* UpdatePathName(UpdatePath path) {
   switch (path) {
     case UpdatePath::kNoop:
@@ -168,6 +180,12 @@ absl::StatusOr<Triangulation> Triangulation::Create(
   t.options_ = options;
   t.adjacency_ = std::make_unique<AdjacencyCache>();
   t.arena_ = MakeArena(options.num_threads);
+  if (options.executor == Executor::kDevice) {
+    absl::StatusOr<std::unique_ptr<device::DeviceExecutor>> d =
+        device::MakeDeviceExecutor(options.device_backend);
+    if (!d.ok()) return d.status();
+    t.device_ = *std::move(d);
+  }
   std::vector<Vec2> copy(points.begin(), points.end());
   t.Run([&] { t.Rebuild(copy); });
   return t;
@@ -190,7 +208,27 @@ Triangulation Triangulation::Clone() const {
   t.line_rank_ = line_rank_;
   t.baseline_span_ = baseline_span_;
   t.steps_ = steps_;
+  if (device_ != nullptr) {
+    // Its own device copy (uploaded by its first step). The backend was
+    // available when this triangulation was made; should it be gone (a GPU
+    // lost), the copy continues on the round executor.
+    absl::StatusOr<std::unique_ptr<device::DeviceExecutor>> d =
+        device::MakeDeviceExecutor(device_->backend());
+    if (d.ok()) {
+      t.device_ = *std::move(d);
+    } else {
+      t.options_.executor = Executor::kRounds;
+    }
+  }
   return t;
+}
+
+void Triangulation::MeshChangedOnHost() {
+  if (device_ != nullptr) device_->Invalidate();
+}
+
+uint64_t Triangulation::device_bytes() const {
+  return device_ != nullptr ? device_->device_bytes() : 0;
 }
 
 std::vector<Vec2> Triangulation::Positions() const {
@@ -267,6 +305,7 @@ void Triangulation::Rebuild(const std::vector<Vec2>& positions_by_ext) {
     if (rep_[i] == i) sites_.push_back(i);
   }
   mesh_ = BuildDelaunayWithCgal(pos_, sites_);
+  MeshChangedOnHost();
   if (!mesh_.empty()) mesh_.SortTrianglesByVertex();
   removal_touched_.clear();
   line_.clear();
@@ -337,6 +376,7 @@ void Triangulation::Renumber() {
   if (!mesh_.empty()) {
     mesh_.RenumberVertices(new_of_old);
     mesh_.SortTrianglesByVertex();
+    MeshChangedOnHost();
   } else {
     for (uint32_t& v : line_) v = new_of_old[v];
     line_rank_.assign(n, kNoVertex);
@@ -345,15 +385,74 @@ void Triangulation::Renumber() {
   baseline_span_ = MeanEdgeSpan();
 }
 
+absl::Status Triangulation::AttemptOnDevice(
+    const std::vector<Vec2>& to, const std::vector<uint32_t>* moved,
+    const std::vector<uint32_t>* seeds, const CancelToken* cancel,
+    StepReport* report, std::vector<uint32_t>* stuck_vertices, int* result) {
+  std::vector<uint32_t> candidates;
+  if (moved != nullptr) {
+    candidates = KineticExecutor::CandidateTriangles(mesh_, *moved);
+  }
+  absl::StatusOr<device::DeviceAttempt> a = device_->Attempt(
+      mesh_, to, moved != nullptr ? &candidates : nullptr, seeds,
+      options_.round.rebuild_fraction, cancel);
+  if (!a.ok()) return a.status();
+  report->fix_seconds += a->fix_seconds;
+  report->legalize_seconds += a->legalize_seconds;
+  report->transfer_seconds += a->transfer_seconds;
+  report->transfer_bytes += a->bytes_uploaded + a->bytes_downloaded;
+  if (a->cancelled) {
+    *result = -1;
+  } else if (a->tangled) {
+    *result = -2;
+  } else if (a->fixed) {
+    report->flips += a->counts;
+    *result = 1;
+  } else {
+    stuck_vertices->insert(stuck_vertices->end(), a->stuck_corners.begin(),
+                           a->stuck_corners.end());
+    *result = 0;
+  }
+  return absl::OkStatus();
+}
+
 bool Triangulation::TryStep(const std::vector<Vec2>& to,
                             const std::vector<uint32_t>* moved,
                             const std::vector<uint32_t>* seeds, int depth,
-                            StepReport* report,
+                            const CancelToken* cancel, StepReport* report,
                             std::vector<uint32_t>* stuck_vertices) {
+  if (device_ != nullptr) {
+    int result = 0;
+    const absl::Status st = AttemptOnDevice(to, moved, seeds, cancel, report,
+                                            stuck_vertices, &result);
+    if (!st.ok()) device_failure_ = std::string(st.message());
+    if (!st.ok() || result == -2) {
+      too_tangled_ = true;  // device error or tangled: rebuild on the host
+      return false;
+    }
+    if (result < 0) return false;  // cancelled: the caller checks the token
+    if (result == 1) {
+      if (moved == nullptr) {
+        pos_ = to;
+      } else {
+        for (uint32_t v : *moved) {
+          for (uint32_t p = v; p != kNoVertex; p = dup_next_[p]) {
+            pos_[p] = to[p];
+          }
+        }
+      }
+      ++report->substeps;
+      return true;
+    }
+    ++report->failed_attempts;
+    if (depth >= options_.round.max_subdivision_depth) return false;
+    return SplitStep(to, moved, seeds, depth, cancel, report, stuck_vertices);
+  }
   auto t0 = std::chrono::steady_clock::now();
   std::vector<uint32_t> invalid =
       KineticExecutor::FindInvalidTriangles(mesh_, to, moved);
-  std::vector<uint32_t> touched, log, stuck;
+  std::vector<uint32_t> touched, stuck;
+  FixLog log;
   FlipCounts counts;
   if (moved == nullptr && invalid.size() > options_.round.rebuild_fraction *
                                                mesh_.num_triangles()) {
@@ -403,7 +502,15 @@ bool Triangulation::TryStep(const std::vector<Vec2>& to,
   KineticExecutor::Undo(mesh_, log);
   report->fix_seconds += SecondsSince(t0);
   if (depth >= options_.round.max_subdivision_depth) return false;
-  // Split: move halfway, then the rest.
+  return SplitStep(to, moved, seeds, depth, cancel, report, stuck_vertices);
+}
+
+bool Triangulation::SplitStep(const std::vector<Vec2>& to,
+                              const std::vector<uint32_t>* moved,
+                              const std::vector<uint32_t>* seeds, int depth,
+                              const CancelToken* cancel, StepReport* report,
+                              std::vector<uint32_t>* stuck_vertices) {
+  // Move halfway, then the rest.
   std::vector<Vec2> mid = pos_;
   auto halfway = [&](size_t i) {
     const Vec2 h = Midpoint(pos_[i], to[i]);
@@ -420,20 +527,21 @@ bool Triangulation::TryStep(const std::vector<Vec2>& to,
   if (seeds != nullptr) {
     seeds_now = KineticExecutor::TrianglesAround(mesh_, *moved);
   }
-  if (!TryStep(mid, moved, seeds ? &seeds_now : nullptr, depth + 1, report,
-               stuck_vertices)) {
+  if (!TryStep(mid, moved, seeds ? &seeds_now : nullptr, depth + 1, cancel,
+               report, stuck_vertices)) {
     return false;
   }
   if (seeds != nullptr) {
     seeds_now = KineticExecutor::TrianglesAround(mesh_, *moved);
   }
-  return TryStep(to, moved, seeds ? &seeds_now : nullptr, depth + 1, report,
-                 stuck_vertices);
+  return TryStep(to, moved, seeds ? &seeds_now : nullptr, depth + 1, cancel,
+                 report, stuck_vertices);
 }
 
 bool Triangulation::InsertBatch(std::vector<uint32_t> pending,
                                 const std::vector<uint32_t>& hints,
                                 StepReport* report) {
+  if (!pending.empty()) MeshChangedOnHost();
   std::sort(pending.begin(), pending.end());
   std::vector<uint32_t> owner;  // per triangle: inserting vertex this round
   while (!pending.empty()) {
@@ -574,12 +682,27 @@ bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
     }
     std::vector<uint32_t> stuck;
     too_tangled_ = false;
-    const bool passed = TryStep(goal, sparse ? &moved : nullptr,
-                                sparse ? &seeds : nullptr, 0, report, &stuck);
+    const bool passed =
+        TryStep(goal, sparse ? &moved : nullptr, sparse ? &seeds : nullptr, 0,
+                cancel, report, &stuck);
+    if (cancel != nullptr && cancel->Cancelled()) {
+      // A device attempt stopped by the token leaves the host mesh as it
+      // was; on the first attempt nothing has changed at all.
+      *cancelled = device_ != nullptr && !passed && attempt == 0 &&
+                           reinsert.empty() && report->substeps == 0
+                       ? 1
+                       : 2;
+      *reason = "cancelled";
+      return false;
+    }
     if (too_tangled_) {
-      *reason = absl::StrCat("over ", options_.round.rebuild_fraction * 100,
-                             "% of the triangles inverted: rebuilding is "
-                             "cheaper");
+      *reason = !device_failure_.empty()
+                    ? absl::StrCat("device executor failed: ", device_failure_)
+                    : absl::StrCat("over ",
+                                   options_.round.rebuild_fraction * 100,
+                                   "% of the triangles inverted: rebuilding "
+                                   "is cheaper");
+      device_failure_.clear();
       return false;
     }
     if (attempt >= options_.round.max_passes) {
@@ -705,6 +828,7 @@ bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
     for (uint32_t v : to_remove) {
       if (ve[v] == kNoEdge) continue;
       hints[v] = mesh_.view().Dest(ve[v]);
+      MeshChangedOnHost();
       if (!VertexOps::Remove(mesh_, pos_, v, &removal_touched_, nullptr)) {
         *reason = "could not remove a vertex for re-insertion";
         return false;
@@ -780,7 +904,10 @@ bool Triangulation::FinishLocalStep(std::vector<Vec2>& next,
   }
   report->reinsert_seconds += SecondsSince(t_insert);
   report->reinserted = static_cast<uint32_t>(reinsert.size());
-  if (mesh_.has_free_triangles()) mesh_.Compact();
+  if (mesh_.has_free_triangles()) {
+    mesh_.Compact();
+    MeshChangedOnHost();
+  }
   sites_.clear();
   has_duplicates_ = false;
   for (uint32_t i = 0; i < n; ++i) {

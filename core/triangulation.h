@@ -28,6 +28,11 @@
 //    is removed and re-inserted. CGAL rebuilds the mesh when more than
 //    rebuild_fraction of the triangles invert, when re-insertion would
 //    exceed its budget, or when max_passes run out (RoundStepPolicy).
+//  * the device executor (core/device/device_executor.h): the round
+//    executor's schedule written once in CCCL/Thrust and run on a device
+//    backend (a GPU, or CPU threads for the emulated backend); the same
+//    hold-back, halving, re-insertion and rebuild decisions as the round
+//    executor, taken on the host between device attempts.
 // StepReport tells which path was taken.
 #ifndef KINETRI_CORE_TRIANGULATION_H_
 #define KINETRI_CORE_TRIANGULATION_H_
@@ -46,6 +51,7 @@
 #include "absl/status/statusor.h"
 #include "absl/types/span.h"
 #include "core/cancel.h"
+#include "core/device/device_executor.h"
 #include "core/kinetic.h"
 #include "core/mesh.h"
 #include "core/region_executor.h"
@@ -59,7 +65,10 @@ enum class Executor {
   kRegions,  // per-region stacks, one dense pass (core/region_executor.h)
   kRounds,   // global rounds with atomic claims (core/kinetic.h): the
              // GPU-shaped schedule, kept as an option and a test oracle
+  kDevice,   // the round schedule on a device backend
+             // (core/device/device_executor.h); RoundStepPolicy applies
 };
+const char* ExecutorName(Executor executor);
 
 struct TriangulationOptions {
   int num_threads = 0;  // 0: all cores
@@ -68,6 +77,9 @@ struct TriangulationOptions {
   // apply to both).
   RegionStepPolicy region;
   RoundStepPolicy round;
+  // Where the device executor runs (executor == kDevice); Create fails
+  // with FAILED_PRECONDITION when this build or machine lacks it.
+  device::DeviceBackend device_backend = device::DeviceBackend::kEmulated;
   double renumber_stretch = 2.0;    // renumber when edge span grows this much
   int renumber_check_interval = 8;  // steps between locality checks
 };
@@ -112,6 +124,10 @@ struct StepReport {
   double reinsert_seconds = 0.0;
   double scan_seconds = 0.0;  // region executor: scan and hold-back
   double held_seconds = 0.0;  // region executor: held vertices moved alone
+  // Device executor: host<->device copies (included in fix/legalize time
+  // of nothing else) and their volume.
+  double transfer_seconds = 0.0;
+  uint64_t transfer_bytes = 0;
 };
 
 class Triangulation {
@@ -137,6 +153,8 @@ class Triangulation {
   // 100 bytes per point. Lets readers keep an immutable snapshot while a
   // writer moves a copy.
   Triangulation Clone() const;
+  // Device memory held by the device executor (0 for the CPU executors).
+  uint64_t device_bytes() const;
   // Steps applied so far (successful ApplyDisplacements calls).
   uint64_t steps() const { return steps_; }
 
@@ -184,7 +202,24 @@ class Triangulation {
   // stuck_vertices lists vertices of the triangles that could not be fixed.
   bool TryStep(const std::vector<Vec2>& to, const std::vector<uint32_t>* moved,
                const std::vector<uint32_t>* seeds, int depth,
-               StepReport* report, std::vector<uint32_t>* stuck_vertices);
+               const CancelToken* cancel, StepReport* report,
+               std::vector<uint32_t>* stuck_vertices);
+  // TryStep's second half: the step split in two halves (depth + 1).
+  bool SplitStep(const std::vector<Vec2>& to,
+                 const std::vector<uint32_t>* moved,
+                 const std::vector<uint32_t>* seeds, int depth,
+                 const CancelToken* cancel, StepReport* report,
+                 std::vector<uint32_t>* stuck_vertices);
+  // TryStep's attempt on the device executor: *result 1 fixed, 0 stuck
+  // (stuck_vertices filled), -1 cancelled, -2 too tangled (rebuild).
+  absl::Status AttemptOnDevice(const std::vector<Vec2>& to,
+                             const std::vector<uint32_t>* moved,
+                             const std::vector<uint32_t>* seeds,
+                             const CancelToken* cancel, StepReport* report,
+                             std::vector<uint32_t>* stuck_vertices,
+                             int* result);
+  // The host changed mesh_ (the device copy must be uploaded again).
+  void MeshChangedOnHost();
   // Coincident points whose positions in `next` leave their site: detached
   // from it (they are inserted again at the end of the step).
   std::vector<uint32_t> DetachPartingPoints(const std::vector<Vec2>& next);
@@ -236,6 +271,8 @@ class Triangulation {
   std::unique_ptr<AdjacencyCache> adjacency_;
 
   FlipScratch scratch_;
+  std::unique_ptr<device::DeviceExecutor> device_;  // executor == kDevice
+  std::string device_failure_;  // why the device failed this step, if it did
   RegionExecutor region_executor_;
   bool too_tangled_ = false;
   std::vector<uint32_t> removal_touched_;

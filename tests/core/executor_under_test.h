@@ -1,6 +1,8 @@
-// The executor a motion test runs on. The motion tests are built twice: for
-// the region executor (default) and, with KINETRI_TEST_ROUNDS, for the round
-// executor, so every sequence checks both against CGAL.
+// The executor a motion test runs on. The motion tests are built three
+// times: for the region executor (default), with KINETRI_TEST_ROUNDS for the
+// round executor, and with KINETRI_TEST_DEVICE for the device executor on
+// its emulated backend (the CCCL source on CPU threads), so every sequence
+// checks all of them against CGAL.
 #ifndef KINETRI_TESTS_CORE_EXECUTOR_UNDER_TEST_H_
 #define KINETRI_TESTS_CORE_EXECUTOR_UNDER_TEST_H_
 
@@ -8,7 +10,7 @@
 
 namespace kinetri::testing {
 
-#ifdef KINETRI_TEST_ROUNDS
+#if defined(KINETRI_TEST_ROUNDS) || defined(KINETRI_TEST_DEVICE)
 inline constexpr bool kRegionExecutor = false;
 #else
 inline constexpr bool kRegionExecutor = true;
@@ -16,8 +18,11 @@ inline constexpr bool kRegionExecutor = true;
 
 inline core::TriangulationOptions ExecutorOptions() {
   core::TriangulationOptions o;
-#ifdef KINETRI_TEST_ROUNDS
+#if defined(KINETRI_TEST_ROUNDS)
   o.executor = core::Executor::kRounds;
+#elif defined(KINETRI_TEST_DEVICE)
+  o.executor = core::Executor::kDevice;
+  o.device_backend = core::device::DeviceBackend::kEmulated;
 #else
   o.executor = core::Executor::kRegions;
   // Test meshes are small: small regions make most of them parallel and

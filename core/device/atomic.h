@@ -1,0 +1,58 @@
+// The atomics the device executor needs (claims, last-writer marks),
+// relaxed, callable from host and device code. libcu++'s
+// cuda::atomic_ref where it exists (the CUDA toolkit's CCCL, also used by
+// the emulated backend on CPU threads); GCC's builtins on hosts without it.
+#ifndef KINETRI_CORE_DEVICE_ATOMIC_H_
+#define KINETRI_CORE_DEVICE_ATOMIC_H_
+
+#include <cstdint>
+
+#include "core/hd.h"
+
+#if __has_include(<cuda/atomic>)
+#include <cuda/atomic>
+#define KINETRI_HAS_LIBCUDACXX 1
+#endif
+
+namespace kinetri::core::device {
+
+KINETRI_HD inline void ClaimMin(uint32_t* slot, uint32_t value) {
+#ifdef KINETRI_HAS_LIBCUDACXX
+  cuda::atomic_ref<uint32_t, cuda::thread_scope_device> ref(*slot);
+  ref.fetch_min(value, cuda::std::memory_order_relaxed);
+#else
+  uint32_t cur = __atomic_load_n(slot, __ATOMIC_RELAXED);
+  while (value < cur &&
+         !__atomic_compare_exchange_n(slot, &cur, value, /*weak=*/true,
+                                      __ATOMIC_RELAXED, __ATOMIC_RELAXED)) {
+  }
+#endif
+}
+
+// *slot = max(*slot, value), relaxed.
+KINETRI_HD inline void ClaimMax(uint32_t* slot, uint32_t value) {
+#ifdef KINETRI_HAS_LIBCUDACXX
+  cuda::atomic_ref<uint32_t, cuda::thread_scope_device> ref(*slot);
+  ref.fetch_max(value, cuda::std::memory_order_relaxed);
+#else
+  uint32_t cur = __atomic_load_n(slot, __ATOMIC_RELAXED);
+  while (value > cur &&
+         !__atomic_compare_exchange_n(slot, &cur, value, /*weak=*/true,
+                                      __ATOMIC_RELAXED, __ATOMIC_RELAXED)) {
+  }
+#endif
+}
+
+// *slot = value for a slot other threads may write the same value to.
+KINETRI_HD inline void StoreRelaxed(uint32_t* slot, uint32_t value) {
+#ifdef KINETRI_HAS_LIBCUDACXX
+  cuda::atomic_ref<uint32_t, cuda::thread_scope_device> ref(*slot);
+  ref.store(value, cuda::std::memory_order_relaxed);
+#else
+  __atomic_store_n(slot, value, __ATOMIC_RELAXED);
+#endif
+}
+
+}  // namespace kinetri::core::device
+
+#endif  // KINETRI_CORE_DEVICE_ATOMIC_H_

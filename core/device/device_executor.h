@@ -1,0 +1,103 @@
+// The device executor of the kinetic update: the round executor's schedule
+// (core/kinetic.h: global rounds, atomic claims, sorted worklists) written
+// once in CCCL (Thrust algorithms over functors that call the shared
+// per-element rules of core/flip_rules.h) and built twice:
+//   * kCuda: by nvcc, running on a GPU (core/device/cuda_backend.cu);
+//   * kEmulated: by the host compiler with Thrust's TBB device system, on
+//     CPU threads (core/device/emulated_backend.cc), so that every CI run
+//     executes the same device source without a GPU.
+// Both come from core/device/round_executor.inl; nothing here exposes
+// Thrust or CUDA types.
+//
+// The executor owns a device copy of the mesh that lives across steps: after
+// a successful attempt the device and host meshes are equal and the next
+// step uploads only positions. Whoever changes the host mesh otherwise
+// (re-insertion, rebuild, renumbering) calls Invalidate(); the next attempt
+// uploads it again. Hold-back decisions, re-insertion and rebuilds stay on
+// the host (Triangulation), with explicit transfers that the attempt
+// reports.
+#ifndef KINETRI_CORE_DEVICE_DEVICE_EXECUTOR_H_
+#define KINETRI_CORE_DEVICE_DEVICE_EXECUTOR_H_
+
+#include <cstdint>
+#include <memory>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "absl/types/span.h"
+#include "core/cancel.h"
+#include "core/kinetic.h"
+#include "core/mesh.h"
+#include "core/vec2.h"
+
+namespace kinetri::core::device {
+
+enum class DeviceBackend {
+  kEmulated,  // Thrust's TBB device system on CPU threads (tests, CI)
+  kCuda,      // nvcc build on a GPU
+};
+const char* DeviceBackendName(DeviceBackend backend);
+
+// One attempt to move every vertex to `to` (see DeviceExecutor::Attempt).
+struct DeviceAttempt {
+  bool tangled = false;  // dense attempt with too many inverted triangles
+  bool fixed = false;    // the mesh is now Delaunay for `to` (downloaded)
+  bool cancelled = false;
+  FlipCounts counts;  // fixing and legalizing flips (when fixed)
+  // When not fixed: the corners of the triangles that fixing could not
+  // repair, three per triangle (kNoVertex for the infinite vertex).
+  std::vector<uint32_t> stuck_corners;
+  double fix_seconds = 0.0;
+  double legalize_seconds = 0.0;
+  double transfer_seconds = 0.0;  // uploads and downloads
+  uint64_t bytes_uploaded = 0;
+  uint64_t bytes_downloaded = 0;
+};
+
+class DeviceExecutor {
+ public:
+  virtual ~DeviceExecutor() = default;
+  virtual DeviceBackend backend() const = 0;
+
+  // The host mesh changed outside Attempt(): upload it before the next one.
+  virtual void Invalidate() = 0;
+
+  // Moves to `to` on the device: finds the invalid triangles (all of them,
+  // or among `candidates` when non-null), repairs them by fixing rounds
+  // (core/flip_rules.h proposals, claims by smallest edge id), checks that
+  // the hull winds once, then legalizes (every edge, or the edges of
+  // `seeds` plus the triangles fixing touched when seeds is non-null). On
+  // success the mesh is downloaded into `mesh` (origin, twin, vertex_edge,
+  // the latter kept as the host's round executor keeps it, so both give the
+  // same mesh down to the numbering). On failure `mesh`
+  // is untouched (it is still valid for the old positions). A dense attempt
+  // with more than `rebuild_fraction` of the triangles inverted stops at
+  // once (tangled). `cancel` is polled every round.
+  virtual absl::StatusOr<DeviceAttempt> Attempt(
+      Mesh& mesh, absl::Span<const Vec2> to,
+      const std::vector<uint32_t>* candidates,
+      const std::vector<uint32_t>* seeds, double rebuild_fraction,
+      const CancelToken* cancel) = 0;
+
+  // Device memory held across steps (mesh, positions, claims, scratch).
+  virtual uint64_t device_bytes() const = 0;
+};
+
+// Whether this build has the backend, and (kCuda) a GPU to run it.
+bool DeviceBackendAvailable(DeviceBackend backend);
+
+// A new executor on `backend`; FAILED_PRECONDITION when it is unavailable.
+absl::StatusOr<std::unique_ptr<DeviceExecutor>> MakeDeviceExecutor(
+    DeviceBackend backend);
+
+// The CUDA build registers itself (kinetri::device_cuda calls this from
+// RegisterCudaBackend()); the emulated backend is built into the core when
+// the CCCL headers exist.
+using DeviceExecutorFactory = std::unique_ptr<DeviceExecutor> (*)();
+void RegisterDeviceBackend(DeviceBackend backend, DeviceExecutorFactory make,
+                           bool (*available)());
+
+}  // namespace kinetri::core::device
+
+#endif  // KINETRI_CORE_DEVICE_DEVICE_EXECUTOR_H_

@@ -1,0 +1,672 @@
+// The device executor's source, written once and compiled twice (see
+// core/device/device_executor.h): included by cuda_backend.cu (nvcc, Thrust's
+// CUDA system) and emulated_backend.cc (host compiler, Thrust's TBB system).
+// The including file defines KINETRI_DEVICE_NS (the namespace of its build)
+// and, for the emulated build, THRUST_CUB_WRAPPED_NAMESPACE so the two
+// Thrust instantiations never share a symbol.
+//
+// The schedule is the round executor's (core/kinetic.cc), step for step:
+// worklists are sorted and unique, a round's winners hold the smallest edge
+// id on all six triangles of their footprint (and a fixing flip on the
+// vertices it joins), the next worklist is built from the same elements. So
+// for the same input the device mesh equals the round executor's, triangle
+// numbering included. Only Thrust algorithms over the functors below run on
+// the device; the host drives the rounds (one size read per round).
+#ifndef KINETRI_DEVICE_NS
+#error "define KINETRI_DEVICE_NS before including round_executor.inl"
+#endif
+
+#include <thrust/copy.h>
+#include <thrust/count.h>
+#include <thrust/device_vector.h>
+#include <thrust/fill.h>
+#include <thrust/for_each.h>
+#include <thrust/gather.h>
+#include <thrust/iterator/counting_iterator.h>
+#include <thrust/remove.h>
+#include <thrust/sort.h>
+#include <thrust/transform.h>
+#include <thrust/transform_reduce.h>
+#include <thrust/unique.h>
+
+#include <chrono>
+#include <cstdint>
+#include <memory>
+#include <type_traits>
+#include <vector>
+
+#include "core/device/atomic.h"
+#include "core/device/device_executor.h"
+#include "core/flip_rules.h"
+#include "core/mesh.h"
+#include "core/vec2.h"
+
+namespace kinetri::core::device {
+namespace KINETRI_DEVICE_NS {
+namespace {
+
+namespace thr = THRUST_NS_QUALIFIER;
+using U32Vector = thr::device_vector<uint32_t>;
+using Count = thr::counting_iterator<uint32_t>;
+
+// Everything a functor carries to the device is a plain view.
+static_assert(std::is_trivially_copyable_v<MeshView>);
+static_assert(std::is_trivially_copyable_v<Vec2>);
+static_assert(std::is_trivially_copyable_v<rules::FixProposal>);
+
+template <typename T>
+T* Raw(thr::device_vector<T>& v) {
+  return thr::raw_pointer_cast(v.data());
+}
+
+KINETRI_HD inline uint32_t Canonical(const MeshView& m, uint32_t e) {
+  const uint32_t f = m.twin[e];
+  return e < f ? e : f;
+}
+
+struct TriangleBad {
+  MeshView m;
+  const Vec2* pos;
+  KINETRI_HD bool operator()(uint32_t t) const {
+    return !rules::TriangleOk(m, pos, t);
+  }
+};
+
+struct ProposeFix {
+  MeshView m;
+  const Vec2* pos;
+  KINETRI_HD rules::FixProposal operator()(uint32_t t) const {
+    rules::FixProposal p = rules::ProposeFixFlip(m, pos, t);
+    if (p.edge != kNoEdge) p.edge = Canonical(m, p.edge);
+    return p;
+  }
+};
+
+struct NoFlip {
+  KINETRI_HD bool operator()(const rules::FixProposal& p) const {
+    return p.edge == kNoEdge;
+  }
+};
+struct IsSet {
+  KINETRI_HD bool operator()(uint8_t f) const { return f != 0; }
+};
+struct IsClear {
+  KINETRI_HD bool operator()(uint8_t f) const { return f == 0; }
+};
+struct EdgeLess {
+  KINETRI_HD bool operator()(const rules::FixProposal& a,
+                             const rules::FixProposal& b) const {
+    return a.edge < b.edge;
+  }
+};
+struct EdgeEqual {
+  KINETRI_HD bool operator()(const rules::FixProposal& a,
+                             const rules::FixProposal& b) const {
+    return a.edge == b.edge;
+  }
+};
+
+// Splits proposals into edges and the (two) vertices each one joins.
+struct SplitProposal {
+  const rules::FixProposal* props;
+  uint32_t* edges;
+  uint32_t* joins;
+  uint32_t* kinds;
+  KINETRI_HD void operator()(uint32_t i) const {
+    edges[i] = props[i].edge;
+    joins[2 * i] = props[i].new_u;
+    joins[2 * i + 1] = props[i].new_w;
+    kinds[i] = props[i].kind;
+  }
+};
+
+// Claims: every proposal writes its edge id into the six triangles of its
+// footprint (and its joined vertices) with an atomic min; a proposal wins
+// when it holds all of them; then every claim is reset.
+struct Claims {
+  MeshView m;
+  const uint32_t* edges;
+  const uint32_t* joins;  // two per proposal, or null
+  uint32_t* tri_claim;
+  uint32_t* vert_claim;
+  uint32_t num_vertices;
+
+  KINETRI_HD void Claim(uint32_t i) const {
+    uint32_t fp[6];
+    rules::FlipFootprint(m, edges[i], fp);
+    for (uint32_t t : fp) ClaimMin(&tri_claim[t], edges[i]);
+    if (joins != nullptr) {
+      for (int k = 0; k < 2; ++k) {
+        const uint32_t v = joins[2 * i + k];
+        if (v < num_vertices) ClaimMin(&vert_claim[v], edges[i]);
+      }
+    }
+  }
+  KINETRI_HD bool Won(uint32_t i) const {
+    uint32_t fp[6];
+    rules::FlipFootprint(m, edges[i], fp);
+    for (uint32_t t : fp) {
+      if (tri_claim[t] != edges[i]) return false;
+    }
+    if (joins != nullptr) {
+      for (int k = 0; k < 2; ++k) {
+        const uint32_t v = joins[2 * i + k];
+        if (v < num_vertices && vert_claim[v] != edges[i]) return false;
+      }
+    }
+    return true;
+  }
+  KINETRI_HD void Release(uint32_t i) const {
+    uint32_t fp[6];
+    rules::FlipFootprint(m, edges[i], fp);
+    for (uint32_t t : fp) tri_claim[t] = kNoEdge;
+    if (joins != nullptr) {
+      for (int k = 0; k < 2; ++k) {
+        const uint32_t v = joins[2 * i + k];
+        if (v < num_vertices) vert_claim[v] = kNoEdge;
+      }
+    }
+  }
+};
+struct ClaimOp {
+  Claims c;
+  KINETRI_HD void operator()(uint32_t i) const { c.Claim(i); }
+};
+struct WonOp {
+  Claims c;
+  KINETRI_HD bool operator()(uint32_t i) const { return c.Won(i); }
+};
+struct ReleaseOp {
+  Claims c;
+  KINETRI_HD void operator()(uint32_t i) const { c.Release(i); }
+};
+
+// Footprint of winner w (six triangles) written at out + 6 * position, and
+// its two own triangles at touched + 2 * position (if non-null).
+struct WriteFootprint {
+  MeshView m;
+  const uint32_t* winner_edges;
+  uint32_t* out;
+  uint32_t* touched;
+  KINETRI_HD void operator()(uint32_t i) const {
+    uint32_t fp[6];
+    rules::FlipFootprint(m, winner_edges[i], fp);
+    for (int k = 0; k < 6; ++k) out[6 * i + k] = fp[k];
+    if (touched != nullptr) {
+      touched[2 * i] = fp[0];
+      touched[2 * i + 1] = fp[1];
+    }
+  }
+};
+
+struct FlipOp {
+  MeshView m;
+  KINETRI_HD void operator()(uint32_t e) const { m.Flip(e); }
+};
+
+struct KindIs {
+  uint32_t kind;
+  KINETRI_HD bool operator()(uint32_t k) const { return k == kind; }
+};
+
+struct EdgeIllegal {
+  MeshView m;
+  const Vec2* pos;
+  KINETRI_HD bool operator()(uint32_t e) const {
+    return rules::IsIllegal(m, pos, e);
+  }
+};
+
+struct IsCanonical {
+  MeshView m;
+  KINETRI_HD bool operator()(uint32_t e) const { return e < m.twin[e]; }
+};
+
+// The three canonical edges of each seed triangle.
+struct TriangleEdges {
+  MeshView m;
+  const uint32_t* triangles;
+  uint32_t* out;
+  KINETRI_HD void operator()(uint32_t i) const {
+    const uint32_t t = triangles[i];
+    for (uint32_t k = 0; k < 3; ++k) out[3 * i + k] = Canonical(m, 3 * t + k);
+  }
+};
+
+// After flipping winner edge e: the four outer edges of its quad.
+struct OuterEdges {
+  MeshView m;
+  const uint32_t* winner_edges;
+  uint32_t* out;
+  KINETRI_HD void operator()(uint32_t i) const {
+    const uint32_t e = winner_edges[i], f = m.twin[e];
+    out[4 * i + 0] = Canonical(m, Next(e));
+    out[4 * i + 1] = Canonical(m, Prev(e));
+    out[4 * i + 2] = Canonical(m, Next(f));
+    out[4 * i + 3] = Canonical(m, Prev(f));
+  }
+};
+
+// Hull winding as a reduction over the ghost triangles (the ghosts form
+// one cycle around the infinite vertex, so counting them equals walking
+// them): it winds once iff there are at least three, each has a spoke with
+// finite hull neighbours, and exactly one hull vertex is topmost locally.
+struct HullCount {
+  uint32_t ghosts = 0;
+  uint32_t tops = 0;
+  uint32_t bad = 0;
+};
+struct HullOf {
+  MeshView m;
+  const Vec2* pos;
+  KINETRI_HD HullCount operator()(uint32_t t) const {
+    HullCount c;
+    if (m.IsFree(t) || !m.IsGhost(t)) return c;
+    c.ghosts = 1;
+    const uint32_t s = rules::SpokeOf(m, t);
+    if (s == kNoEdge) {
+      c.bad = 1;
+      return c;
+    }
+    const uint32_t a = m.origin[s];
+    const uint32_t pv = rules::SpokePrev(m, s), nx = rules::SpokeNext(m, s);
+    if (pv == kInfiniteVertex || nx == kInfiniteVertex) {
+      c.bad = 1;
+      return c;
+    }
+    auto above = [&](uint32_t u, uint32_t v) {
+      const Vec2 &x = pos[u], &y = pos[v];
+      return x.y > y.y || (x.y == y.y && x.x > y.x);
+    };
+    c.tops = above(a, pv) && above(a, nx) ? 1 : 0;
+    return c;
+  }
+};
+struct HullPlus {
+  KINETRI_HD HullCount operator()(const HullCount& a,
+                                  const HullCount& b) const {
+    HullCount c;
+    c.ghosts = a.ghosts + b.ghosts;
+    c.tops = a.tops + b.tops;
+    c.bad = a.bad + b.bad;
+    return c;
+  }
+};
+
+struct IsGhostTriangle {
+  MeshView m;
+  KINETRI_HD bool operator()(uint32_t t) const {
+    return !m.IsFree(t) && m.IsGhost(t);
+  }
+};
+
+// Corners of the given triangles (kInfiniteVertex reported as kNoVertex).
+struct Corners {
+  MeshView m;
+  const uint32_t* triangles;
+  uint32_t* out;
+  KINETRI_HD void operator()(uint32_t i) const {
+    const uint32_t t = triangles[i];
+    for (uint32_t k = 0; k < 3; ++k) {
+      const uint32_t v = m.origin[3 * t + k];
+      out[3 * i + k] = v == kInfiniteVertex ? kNoVertex : v;
+    }
+  }
+};
+
+// vertex_edge after a round's flips, exactly as the host sets it
+// (Mesh::UpdateVertexEdgesAfterFlip for each winner in ascending order): a
+// quad corner gets the half-edge of the last winner that touches it. Pass 1
+// marks that winner (atomic max of its index + 1), pass 2 writes, pass 3
+// clears the marks.
+struct QuadCorners {
+  MeshView m;
+  const uint32_t* winner_edges;
+  uint32_t* vertex_edge;
+  uint32_t* last;
+  // The six half-edges in UpdateVertexEdgesAfterFlip's order.
+  KINETRI_HD void Edges(uint32_t i, uint32_t h[6]) const {
+    const uint32_t e = winner_edges[i], f = m.twin[e];
+    h[0] = e;
+    h[1] = Next(e);
+    h[2] = Prev(e);
+    h[3] = f;
+    h[4] = Next(f);
+    h[5] = Prev(f);
+  }
+};
+struct MarkLast {
+  QuadCorners q;
+  KINETRI_HD void operator()(uint32_t i) const {
+    uint32_t h[6];
+    q.Edges(i, h);
+    for (uint32_t k = 0; k < 6; ++k) {
+      const uint32_t v = q.m.origin[h[k]];
+      if (v != kInfiniteVertex) ClaimMax(&q.last[v], i + 1);
+    }
+  }
+};
+struct WriteVertexEdges {
+  QuadCorners q;
+  KINETRI_HD void operator()(uint32_t i) const {
+    uint32_t h[6];
+    q.Edges(i, h);
+    for (uint32_t k = 0; k < 6; ++k) {  // later entries win, as on the host
+      const uint32_t v = q.m.origin[h[k]];
+      if (v != kInfiniteVertex && q.last[v] == i + 1) q.vertex_edge[v] = h[k];
+    }
+  }
+};
+struct ClearLast {
+  QuadCorners q;
+  KINETRI_HD void operator()(uint32_t i) const {
+    uint32_t h[6];
+    q.Edges(i, h);
+    for (uint32_t k = 0; k < 6; ++k) {
+      const uint32_t v = q.m.origin[h[k]];
+      if (v != kInfiniteVertex) StoreRelaxed(&q.last[v], 0);
+    }
+  }
+};
+
+double Since(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0)
+      .count();
+}
+
+void SortUnique(U32Vector& v) {
+  thr::sort(v.begin(), v.end());
+  v.erase(thr::unique(v.begin(), v.end()), v.end());
+}
+
+class RoundDeviceExecutor final : public DeviceExecutor {
+ public:
+  explicit RoundDeviceExecutor(DeviceBackend backend) : backend_(backend) {}
+
+  DeviceBackend backend() const override { return backend_; }
+  void Invalidate() override { stale_ = true; }
+
+  uint64_t device_bytes() const override {
+    uint64_t words = 0;
+    for (const U32Vector* v :
+         {&origin_, &twin_, &vertex_edge_, &last_, &tri_claim_, &vert_claim_, &work_, &bad_, &edges_,
+          &joins_, &kinds_, &winners_, &win_edges_, &next_, &touched_,
+          &seeds_}) {
+      words += v->capacity();
+    }
+    return words * sizeof(uint32_t) + pos_.capacity() * sizeof(Vec2) +
+           props_.capacity() * sizeof(rules::FixProposal);
+  }
+
+  absl::StatusOr<DeviceAttempt> Attempt(Mesh& mesh, absl::Span<const Vec2> to,
+                                        const std::vector<uint32_t>* candidates,
+                                        const std::vector<uint32_t>* seeds,
+                                        double rebuild_fraction,
+                                        const CancelToken* cancel) override {
+    DeviceAttempt out;
+    auto t0 = std::chrono::steady_clock::now();
+    const uint32_t nt = mesh.num_triangles();
+    const uint32_t nv = mesh.num_vertices();
+    if (stale_ || origin_.size() != mesh.num_half_edges() || nv_ != nv) {
+      origin_.assign(mesh.origin().begin(), mesh.origin().end());
+      twin_.assign(mesh.twin().begin(), mesh.twin().end());
+      vertex_edge_.assign(mesh.vertex_edge().begin(), mesh.vertex_edge().end());
+      out.bytes_uploaded += 8ull * mesh.num_half_edges() + 4ull * nv;
+      nv_ = nv;
+      stale_ = false;
+    }
+    pos_.assign(to.begin(), to.end());
+    out.bytes_uploaded += sizeof(Vec2) * to.size();
+    if (tri_claim_.size() != nt) tri_claim_.assign(nt, kNoEdge);
+    if (vert_claim_.size() != nv) vert_claim_.assign(nv, kNoEdge);
+    if (last_.size() != nv) last_.assign(nv, 0);
+    if (candidates != nullptr) {
+      seeds_.assign(candidates->begin(), candidates->end());
+      out.bytes_uploaded += 4ull * candidates->size();
+    }
+    out.transfer_seconds += Since(t0);
+    t0 = std::chrono::steady_clock::now();
+
+    const MeshView m{Raw(origin_), Raw(twin_), mesh.num_half_edges()};
+    const Vec2* p = Raw(pos_);
+    // Invalid triangles (the first worklist).
+    if (candidates == nullptr) {
+      work_.resize(nt);
+      work_.erase(thr::copy_if(Count(0), Count(nt), work_.begin(),
+                               TriangleBad{m, p}),
+                  work_.end());
+      if (work_.size() > rebuild_fraction * nt) {
+        out.tangled = true;
+        out.fix_seconds = Since(t0);
+        return out;
+      }
+    } else {
+      work_.resize(seeds_.size());
+      work_.erase(thr::copy_if(seeds_.begin(), seeds_.end(), work_.begin(),
+                               TriangleBad{m, p}),
+                  work_.end());
+    }
+    SortUnique(work_);
+    touched_.clear();
+    const bool keep_touched = seeds != nullptr;
+    stale_ = true;  // until the result is downloaded
+    const int fixed = Fix(m, p, nt, nv, keep_touched, cancel, &out);
+    out.fix_seconds = Since(t0);
+    if (fixed < 0) {
+      out.cancelled = true;
+      return out;
+    }
+    if (fixed == 0) return out;
+
+    t0 = std::chrono::steady_clock::now();
+    if (seeds == nullptr) {
+      const uint32_t ne = mesh.num_half_edges();
+      work_.resize(ne);
+      work_.erase(
+          thr::copy_if(Count(0), Count(ne), work_.begin(), IsCanonical{m}),
+          work_.end());
+    } else {
+      const size_t ns = seeds->size(), nt_touched = touched_.size();
+      next_.resize(ns + nt_touched);
+      thr::copy(seeds->begin(), seeds->end(), next_.begin());
+      thr::copy(touched_.begin(), touched_.end(), next_.begin() + ns);
+      out.bytes_uploaded += 4ull * ns;
+      SortUnique(next_);
+      work_.resize(3 * next_.size());
+      thr::for_each(Count(0), Count(static_cast<uint32_t>(next_.size())),
+                    TriangleEdges{m, Raw(next_), Raw(work_)});
+      SortUnique(work_);
+    }
+    if (!Legalize(m, p, cancel, &out.counts)) {
+      out.legalize_seconds = Since(t0);
+      out.cancelled = true;
+      return out;
+    }
+    out.legalize_seconds = Since(t0);
+
+    // Download: the host mesh becomes the device mesh.
+    t0 = std::chrono::steady_clock::now();
+    std::vector<uint32_t> origin(origin_.size()), twin(twin_.size()),
+        vertex_edge(nv);
+    thr::copy(origin_.begin(), origin_.end(), origin.begin());
+    thr::copy(twin_.begin(), twin_.end(), twin.begin());
+    thr::copy(vertex_edge_.begin(), vertex_edge_.end(), vertex_edge.begin());
+    mesh.Assign(std::move(origin), std::move(twin), std::move(vertex_edge));
+    out.bytes_downloaded += 8ull * mesh.num_half_edges() + 4ull * nv;
+    out.transfer_seconds += Since(t0);
+    out.fixed = true;
+    stale_ = false;
+    return out;
+  }
+
+ private:
+  // Fixing rounds over work_ (sorted, unique). 1: fixed (and the hull winds
+  // once); 0: stuck (out->stuck_corners filled); -1: cancelled.
+  int Fix(const MeshView& m, const Vec2* p, uint32_t nt, uint32_t nv,
+          bool keep_touched, const CancelToken* cancel, DeviceAttempt* out) {
+    FlipCounts counts;
+    while (true) {
+      if (cancel != nullptr && cancel->Cancelled()) return -1;
+      bad_.resize(work_.size());
+      bad_.erase(
+          thr::copy_if(work_.begin(), work_.end(), bad_.begin(), TriangleBad{m, p}),
+          bad_.end());
+      if (bad_.empty()) break;
+      const uint32_t nb = static_cast<uint32_t>(bad_.size());
+      props_.resize(nb);
+      thr::transform(bad_.begin(), bad_.end(), props_.begin(),
+                     ProposeFix{m, p});
+      props_.erase(thr::remove_if(props_.begin(), props_.end(), NoFlip{}),
+                   props_.end());
+      if (props_.empty()) {
+        Stuck(m, bad_, out);
+        return 0;
+      }
+      thr::sort(props_.begin(), props_.end(), EdgeLess{});
+      props_.erase(thr::unique(props_.begin(), props_.end(), EdgeEqual{}),
+                   props_.end());
+      const uint32_t np = static_cast<uint32_t>(props_.size());
+      edges_.resize(np);
+      joins_.resize(2 * np);
+      kinds_.resize(np);
+      thr::for_each(Count(0), Count(np),
+                    SplitProposal{thr::raw_pointer_cast(props_.data()),
+                                  Raw(edges_), Raw(joins_), Raw(kinds_)});
+      const uint32_t nw = SelectWinners(
+          Claims{m, Raw(edges_), Raw(joins_), Raw(tri_claim_),
+                 Raw(vert_claim_), nv},
+          np);
+      // Next worklist: the still-invalid triangles plus every winner's
+      // footprint (taken before flipping; flips keep triangle ids).
+      win_edges_.resize(nw);
+      thr::gather(winners_.begin(), winners_.end(), edges_.begin(),
+                  win_edges_.begin());
+      next_.resize(nb + 6ull * nw);
+      thr::copy(bad_.begin(), bad_.end(), next_.begin());
+      const size_t touched_base = touched_.size();
+      if (keep_touched) touched_.resize(touched_base + 2ull * nw);
+      thr::for_each(
+          Count(0), Count(nw),
+          WriteFootprint{m, Raw(win_edges_), Raw(next_) + nb,
+                         keep_touched ? Raw(touched_) + touched_base : nullptr});
+      FlipWinners(m, nw);
+      // Flip kinds of the winners (kinds_ reused as their gathered copy).
+      bad_.resize(nw);
+      thr::gather(winners_.begin(), winners_.end(), kinds_.begin(),
+                  bad_.begin());
+      ++counts.fix_rounds;
+      counts.interior_fix +=
+          thr::count_if(bad_.begin(), bad_.end(), KindIs{rules::kInteriorFlip});
+      counts.hull_absorb +=
+          thr::count_if(bad_.begin(), bad_.end(), KindIs{rules::kHullAbsorb});
+      counts.hull_release +=
+          thr::count_if(bad_.begin(), bad_.end(), KindIs{rules::kHullRelease});
+      SortUnique(next_);
+      work_.swap(next_);
+    }
+    const HullCount hull = thr::transform_reduce(
+        Count(0), Count(nt), HullOf{m, p}, HullCount{}, HullPlus{});
+    if (hull.bad != 0 || hull.ghosts < 3 || hull.tops != 1) {
+      // Every triangle is valid but the hull winds more than once: the
+      // ghost triangles' vertices are the ones to hold back.
+      bad_.resize(nt);
+      bad_.erase(thr::copy_if(Count(0), Count(nt), bad_.begin(),
+                              IsGhostTriangle{m}),
+                 bad_.end());
+      Stuck(m, bad_, out);
+      return 0;
+    }
+    out->counts += counts;
+    return 1;
+  }
+
+  // Legalizing rounds over work_ (canonical edges, sorted, unique). False
+  // when cancelled.
+  bool Legalize(const MeshView& m, const Vec2* p, const CancelToken* cancel,
+                FlipCounts* counts) {
+    while (true) {
+      if (cancel != nullptr && cancel->Cancelled()) return false;
+      edges_.resize(work_.size());
+      edges_.erase(thr::copy_if(work_.begin(), work_.end(), edges_.begin(),
+                                EdgeIllegal{m, p}),
+                   edges_.end());
+      if (edges_.empty()) return true;
+      const uint32_t ni = static_cast<uint32_t>(edges_.size());
+      const uint32_t nw = SelectWinners(
+          Claims{m, Raw(edges_), nullptr, Raw(tri_claim_), nullptr, 0}, ni);
+      win_edges_.resize(nw);
+      thr::gather(winners_.begin(), winners_.end(), edges_.begin(),
+                  win_edges_.begin());
+      FlipWinners(m, nw);
+      // Next worklist: the losers plus the four outer edges of each flipped
+      // quad (duplicates of the winners' own edges vanish in the sort).
+      next_.resize(ni + 4ull * nw);
+      const auto losers_end =
+          thr::copy_if(edges_.begin(), edges_.end(), flags_.begin(),
+                       next_.begin(), IsClear{});
+      const size_t nl = losers_end - next_.begin();
+      next_.resize(nl + 4ull * nw);
+      thr::for_each(Count(0), Count(nw),
+                    OuterEdges{m, Raw(win_edges_), Raw(next_) + nl});
+      ++counts->legalize_rounds;
+      counts->delaunay += nw;
+      SortUnique(next_);
+      work_.swap(next_);
+    }
+  }
+
+  // Flips the edges in win_edges_ (disjoint footprints) and refreshes
+  // vertex_edge of their quads' corners.
+  void FlipWinners(const MeshView& m, uint32_t nw) {
+    thr::for_each(win_edges_.begin(), win_edges_.end(), FlipOp{m});
+    const QuadCorners q{m, Raw(win_edges_), Raw(vertex_edge_), Raw(last_)};
+    thr::for_each(Count(0), Count(nw), MarkLast{q});
+    thr::for_each(Count(0), Count(nw), WriteVertexEdges{q});
+    thr::for_each(Count(0), Count(nw), ClearLast{q});
+  }
+
+  // Claims for n proposals; winners_ receives the indices of the winners
+  // (ascending), flags_ one byte per proposal (1: won). Returns their count.
+  uint32_t SelectWinners(const Claims& c, uint32_t n) {
+    thr::for_each(Count(0), Count(n), ClaimOp{c});
+    flags_.resize(n);
+    thr::transform(Count(0), Count(n), flags_.begin(), WonOp{c});
+    winners_.resize(n);
+    winners_.erase(thr::copy_if(Count(0), Count(n), flags_.begin(),
+                                winners_.begin(), IsSet{}),
+                   winners_.end());
+    thr::for_each(Count(0), Count(n), ReleaseOp{c});
+    return static_cast<uint32_t>(winners_.size());
+  }
+
+  void Stuck(const MeshView& m, U32Vector& triangles, DeviceAttempt* out) {
+    const uint32_t n = static_cast<uint32_t>(triangles.size());
+    next_.resize(3ull * n);
+    thr::for_each(Count(0), Count(n), Corners{m, Raw(triangles), Raw(next_)});
+    out->stuck_corners.resize(3ull * n);
+    thr::copy(next_.begin(), next_.end(), out->stuck_corners.begin());
+    out->bytes_downloaded += 12ull * n;
+  }
+
+  const DeviceBackend backend_;
+  bool stale_ = true;
+  uint32_t nv_ = 0;
+  U32Vector origin_, twin_, vertex_edge_;
+  U32Vector last_;  // per vertex: last winner touching it (0 between rounds)
+  thr::device_vector<Vec2> pos_;
+  U32Vector tri_claim_, vert_claim_;  // kNoEdge between rounds
+  // Scratch kept across rounds and steps (grown, never shrunk).
+  U32Vector work_, bad_, edges_, joins_, kinds_, winners_, win_edges_, next_,
+      touched_, seeds_;
+  thr::device_vector<uint8_t> flags_;
+  thr::device_vector<rules::FixProposal> props_;
+};
+
+}  // namespace
+
+std::unique_ptr<DeviceExecutor> MakeExecutor(DeviceBackend backend) {
+  return std::make_unique<RoundDeviceExecutor>(backend);
+}
+
+}  // namespace KINETRI_DEVICE_NS
+}  // namespace kinetri::core::device
