@@ -13,10 +13,14 @@
 #include <thread>
 
 #include "absl/flags/flag.h"
+#include "core/device/device_executor.h"
 #include "core/program_flags.h"
 #include "server/metrics.h"
 #include "server/service.h"
 #include "server/session_registry.h"
+#ifdef KINETRI_SERVER_CUDA
+#include "core/device/cuda_backend.h"
+#endif
 
 ABSL_FLAG(std::string, listen, "127.0.0.1:50051",
           "gRPC listen address host:port (port 0 picks a free port; use "
@@ -32,6 +36,10 @@ ABSL_FLAG(int, max_message_mb, 4,
           "largest gRPC message accepted, MiB (clients chunk to fit)");
 ABSL_FLAG(int, threads, 0,
           "worker threads per session on the CPU backend (0: all cores)");
+ABSL_FLAG(std::string, device, "auto",
+          "device executor for sessions asking BACKEND_AUTO or BACKEND_CUDA: "
+          "auto (a GPU when built with CUDA and one is present, else none), "
+          "cuda, emulated (the device source on CPU threads: tests), none");
 ABSL_FLAG(uint32_t, max_threads, 256,
           "most worker threads a client may ask for in SessionOptions.threads");
 ABSL_FLAG(int, stream_idle_timeout_seconds, 600,
@@ -85,6 +93,37 @@ int main(int argc, char** argv) {
                  "kinetri-server: --threads must be in [0, --max_threads] and "
                  "--max_threads in [1, 4096]\n");
     return 2;
+  }
+  {
+    namespace dev = kinetri::core::device;
+#ifdef KINETRI_SERVER_CUDA
+    dev::RegisterCudaBackend();
+#endif
+    const std::string device = absl::GetFlag(FLAGS_device);
+    if (device == "auto") {
+      limits.has_device = dev::DeviceBackendAvailable(dev::DeviceBackend::kCuda);
+      limits.device = dev::DeviceBackend::kCuda;
+    } else if (device == "cuda" || device == "emulated") {
+      limits.device = device == "cuda" ? dev::DeviceBackend::kCuda
+                                       : dev::DeviceBackend::kEmulated;
+      if (!dev::DeviceBackendAvailable(limits.device)) {
+        std::fprintf(stderr,
+                     "kinetri-server: --device=%s: this build or machine has "
+                     "no such backend\n",
+                     device.c_str());
+        return 2;
+      }
+      limits.has_device = true;
+    } else if (device != "none") {
+      std::fprintf(stderr,
+                   "kinetri-server: --device must be auto, cuda, emulated or "
+                   "none, not \"%s\"\n",
+                   device.c_str());
+      return 2;
+    }
+    std::printf("kinetri-server: device executor: %s\n",
+                limits.has_device ? dev::DeviceBackendName(limits.device)
+                                  : "none (CPU sessions only)");
   }
   kinetri::server::SessionRegistry registry(limits);
   kinetri::server::Metrics metrics;

@@ -91,8 +91,9 @@ v1::Session Describe(const Session& s) {
   out.set_point_count(s.point_count());
   out.set_site_count(snap.tri->num_sites());
   out.set_step(snap.step);
-  out.mutable_options()->set_backend(s.backend() == "cuda" ? v1::BACKEND_CUDA
-                                                           : v1::BACKEND_CPU);
+  out.mutable_options()->set_backend(s.backend() == "cpu" ? v1::BACKEND_CPU
+                                                          : v1::BACKEND_CUDA);
+  out.set_device_bytes(snap.tri->device_bytes());
   out.mutable_options()->set_threads(s.threads());
   out.mutable_options()->set_point_id_policy(
       s.has_client_ids() ? v1::POINT_ID_POLICY_CLIENT
@@ -133,15 +134,33 @@ grpc::Status KinetriServiceImpl::CreateSession(
                      absl::StrCat("header.session_id: \"", EchoForError(id),
                                   "\" must match [a-z0-9-]{1,63}")));
   }
-  if (header.options().backend() == v1::BACKEND_CUDA) {
+  const ServerLimits& limits = registry_->limits();
+  const v1::Backend asked = header.options().backend();
+  if (asked == v1::BACKEND_CUDA && !limits.has_device) {
     return rpc.Done(grpc::Status(
         grpc::StatusCode::FAILED_PRECONDITION,
-        "header.options.backend: this server has no CUDA backend (built "
-        "without it or no GPU present); use BACKEND_AUTO or BACKEND_CPU"));
+        "header.options.backend: this server has no device executor (built "
+        "without CUDA, no GPU present, or --device=none); use BACKEND_AUTO or "
+        "BACKEND_CPU"));
   }
-  // Admitted against the memory budget before any point is stored.
+  const bool on_device = limits.has_device && asked != v1::BACKEND_CPU;
+  const uint64_t device_bytes =
+      on_device ? header.point_count() * core::device::kDeviceBytesPerPoint : 0;
+  if (on_device && device_bytes > core::device::DeviceFreeBytes(limits.device)) {
+    return rpc.Done(grpc::Status(
+        grpc::StatusCode::RESOURCE_EXHAUSTED,
+        absl::StrCat("CreateSession of ", header.point_count(), " points needs ",
+                     device_bytes >> 20, " MiB of device memory; ",
+                     core::device::DeviceFreeBytes(limits.device) >> 20,
+                     " MiB free")));
+  }
+  // Admitted against the memory budget before any point is stored (the
+  // emulated device's memory is host memory).
+  const bool host_device =
+      on_device && limits.device == core::device::DeviceBackend::kEmulated;
   auto memory = budget_->Reserve(
-      header.point_count() * MemoryBudget::kSessionBytesPerPoint,
+      header.point_count() * MemoryBudget::kSessionBytesPerPoint +
+          (host_device ? device_bytes : 0),
       absl::StrCat("CreateSession of ", header.point_count(), " points"));
   if (!memory.ok()) return rpc.Done(ToGrpc(memory.status()));
   const bool client_ids =
@@ -229,6 +248,10 @@ grpc::Status KinetriServiceImpl::CreateSession(
                                ? header.options().threads()
                                : registry_->limits().default_threads;
   opt.num_threads = static_cast<int>(threads);
+  if (on_device) {
+    opt.executor = core::Executor::kDevice;
+    opt.device_backend = limits.device;
+  }
   auto tri = core::Triangulation::Create(points, opt);
   if (!tri.ok()) return rpc.Done(ToGrpc(tri.status()));
   const uint64_t max_results =
@@ -236,7 +259,9 @@ grpc::Status KinetriServiceImpl::CreateSession(
           ? std::min(header.options().max_query_results(),
                      registry_->limits().max_query_results)
           : registry_->limits().max_query_results;
-  auto session = std::make_shared<Session>(id, std::move(*tri), "cpu",
+  auto session = std::make_shared<Session>(
+      id, std::move(*tri),
+      on_device ? core::device::DeviceBackendName(limits.device) : "cpu",
                                            max_results, threads, std::move(ids),
                                            std::move(*memory), budget_);
   auto added = registry_->Add(session);

@@ -70,8 +70,12 @@ absl::StatusOr<core::StepReport> Session::ApplyStep(
   }
   MemoryBudget::Reservation copy_memory;
   if (!target && budget_ != nullptr) {
-    auto r = budget_->Reserve(point_count_ * MemoryBudget::kCopyBytesPerPoint,
-                              "step copy");
+    // A copy on the emulated device also holds its device scratch in host
+    // memory.
+    const uint64_t per_point =
+        MemoryBudget::kCopyBytesPerPoint +
+        (backend_ == "emulated" ? core::device::kDeviceBytesPerPoint : 0);
+    auto r = budget_->Reserve(point_count_ * per_point, "step copy");
     if (r.ok()) {
       copy_memory = std::move(*r);
     } else {

@@ -25,6 +25,10 @@ struct ServerLimits {
   int default_threads = 0;
   // Most worker threads a session may ask for (SessionOptions.threads).
   uint32_t max_threads = 256;
+  // The device executor sessions with BACKEND_AUTO / BACKEND_CUDA get
+  // (--device); none: every session runs on the CPU.
+  bool has_device = false;
+  core::device::DeviceBackend device = core::device::DeviceBackend::kCuda;
 };
 
 // One session: its triangulation, step counter and metadata.

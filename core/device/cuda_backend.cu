@@ -16,6 +16,12 @@ bool GpuPresent() {
   return cudaGetDeviceCount(&count) == cudaSuccess && count > 0;
 }
 
+uint64_t GpuFreeBytes() {
+  size_t free_bytes = 0, total = 0;
+  if (cudaMemGetInfo(&free_bytes, &total) != cudaSuccess) return 0;
+  return free_bytes;
+}
+
 std::unique_ptr<DeviceExecutor> MakeCudaExecutor() {
   return cuda_build::MakeExecutor(DeviceBackend::kCuda);
 }
@@ -23,7 +29,8 @@ std::unique_ptr<DeviceExecutor> MakeCudaExecutor() {
 }  // namespace
 
 void RegisterCudaBackend() {
-  RegisterDeviceBackend(DeviceBackend::kCuda, &MakeCudaExecutor, &GpuPresent);
+  RegisterDeviceBackend(DeviceBackend::kCuda, &MakeCudaExecutor, &GpuPresent,
+                        &GpuFreeBytes);
 }
 
 }  // namespace kinetri::core::device

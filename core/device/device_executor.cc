@@ -2,6 +2,7 @@
 #include "core/device/device_executor.h"
 
 #include <atomic>
+#include <cstdint>
 
 #include "absl/strings/str_cat.h"
 
@@ -17,6 +18,7 @@ namespace {
 struct Entry {
   std::atomic<DeviceExecutorFactory> make{nullptr};
   std::atomic<bool (*)()> available{nullptr};
+  std::atomic<uint64_t (*)()> free_bytes{nullptr};
 };
 
 bool Always() { return true; }
@@ -45,10 +47,16 @@ const char* DeviceBackendName(DeviceBackend backend) {
 }
 
 void RegisterDeviceBackend(DeviceBackend backend, DeviceExecutorFactory make,
-                           bool (*available)()) {
+                           bool (*available)(), uint64_t (*free_bytes)()) {
   Entry& e = Of(backend);
   e.available = available;
+  e.free_bytes = free_bytes;
   e.make = make;
+}
+
+uint64_t DeviceFreeBytes(DeviceBackend backend) {
+  auto* free_bytes = Of(backend).free_bytes.load();
+  return free_bytes != nullptr ? free_bytes() : UINT64_MAX;
 }
 
 bool DeviceBackendAvailable(DeviceBackend backend) {

@@ -84,8 +84,18 @@ class DeviceExecutor {
   virtual uint64_t device_bytes() const = 0;
 };
 
+// Upper bound of the memory the device executor holds per point of a
+// session once it has stepped (mesh, positions, claims, scratch; checked by
+// tests/core/device_executor_test.cc). Used for admission before anything
+// is allocated.
+inline constexpr uint64_t kDeviceBytesPerPoint = 256;
+
 // Whether this build has the backend, and (kCuda) a GPU to run it.
 bool DeviceBackendAvailable(DeviceBackend backend);
+
+// Free memory on the backend's device (UINT64_MAX for the emulated backend,
+// whose memory is the host's and is budgeted with it).
+uint64_t DeviceFreeBytes(DeviceBackend backend);
 
 // A new executor on `backend`; FAILED_PRECONDITION when it is unavailable.
 absl::StatusOr<std::unique_ptr<DeviceExecutor>> MakeDeviceExecutor(
@@ -96,7 +106,7 @@ absl::StatusOr<std::unique_ptr<DeviceExecutor>> MakeDeviceExecutor(
 // the CCCL headers exist.
 using DeviceExecutorFactory = std::unique_ptr<DeviceExecutor> (*)();
 void RegisterDeviceBackend(DeviceBackend backend, DeviceExecutorFactory make,
-                           bool (*available)());
+                           bool (*available)(), uint64_t (*free_bytes)());
 
 }  // namespace kinetri::core::device
 

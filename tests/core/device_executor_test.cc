@@ -6,6 +6,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <cstdio>
 #include <random>
 #include <vector>
 
@@ -115,6 +116,14 @@ TEST(DeviceExecutor, MeshStaysResidentAcrossSteps) {
   EXPECT_EQ(second->transfer_bytes, pos_bytes + down);
   EXPECT_GT(t->device_bytes(), mesh_bytes + pos_bytes);
   EXPECT_TRUE(t->Validate().ok());
+  // The admission estimate holds after steps of every kind (a large step
+  // legalizes every edge: the biggest worklists).
+  for (double sigma : {0.01, 0.3, 1.0}) {
+    ASSERT_TRUE(t->ApplyDisplacements(Brownian(n, sigma * spacing, rng)).ok());
+    std::printf("sigma %.2f: %.1f device bytes per point\n", sigma,
+                double(t->device_bytes()) / n);
+    EXPECT_LE(t->device_bytes(), device::kDeviceBytesPerPoint * n);
+  }
 }
 
 // Sparse steps (few points move) go through the candidate list; the result

@@ -10,6 +10,7 @@
 #include <random>
 #include <thread>
 
+#include "absl/strings/str_cat.h"
 #include "client/cpp/kinetri_client.h"
 #include "core/predicates.h"
 #include "tests/e2e/server_process.h"
@@ -20,6 +21,15 @@ namespace {
 using core::CompareCloser;
 using core::CompareDistanceToRadius;
 using core::Vec2;
+
+// Built twice: for CPU sessions, and with KINETRI_E2E_DEVICE for sessions
+// on the device executor's emulated backend (server --device=emulated;
+// sessions ask BACKEND_AUTO and get it).
+#ifdef KINETRI_E2E_DEVICE
+constexpr char kBackend[] = "emulated";
+#else
+constexpr char kBackend[] = "cpu";
+#endif
 
 Vec2 At(const std::vector<double>& xy, size_t i) {
   return {xy[2 * i], xy[2 * i + 1]};
@@ -49,8 +59,10 @@ class E2eTest : public ::testing::Test {
   void SetUp() override {
     server_ = std::make_unique<testing::ServerProcess>(
         KINETRI_SERVER_BINARY,
-        std::vector<std::string>{"--max_points=200000", "--max_sessions=4",
-                                 "--threads=2"});
+        std::vector<std::string>{
+            "--max_points=200000", "--max_sessions=4", "--threads=2",
+            std::string("--device=") +
+                (std::string(kBackend) == "cpu" ? "none" : kBackend)});
     ASSERT_TRUE(server_->ok());
     client_ = std::make_unique<Client>(server_->target(), /*chunk_points=*/700);
   }
@@ -71,6 +83,8 @@ TEST_F(E2eTest, LifecycleStepsQueriesExport) {
   EXPECT_EQ(session->name(), "sessions/life");
   EXPECT_EQ(session->point_count(), n);
   EXPECT_EQ(session->site_count(), n - 1);
+  EXPECT_EQ(session->backend(), kBackend);
+  EXPECT_EQ(session->device_bytes(), 0u);  // nothing on a device yet
 
   auto stream = client_->OpenSteps(session->name());
   ASSERT_TRUE(stream.ok());
@@ -112,6 +126,18 @@ TEST_F(E2eTest, LifecycleStepsQueriesExport) {
     ASSERT_FALSE(ack->stats().path().empty());
   }
   ASSERT_TRUE((*stream)->Finish().ok());
+  {
+    auto described = client_->GetSession(session->name());
+    ASSERT_TRUE(described.ok());
+    EXPECT_EQ(described->backend(), kBackend);
+    if (std::string(kBackend) == "cpu") {
+      EXPECT_EQ(described->device_bytes(), 0u);
+      EXPECT_EQ(described->options().backend(), v1::BACKEND_CPU);
+    } else {
+      EXPECT_GT(described->device_bytes(), 0u);
+      EXPECT_EQ(described->options().backend(), v1::BACKEND_CUDA);
+    }
+  }
 
   // Queries of every kind against brute force.
   auto all = client_->NearestOfAll(session->name());
@@ -380,12 +406,14 @@ TEST_F(E2eTest, MetricsMove) {
   const std::string after =
       testing::HttpGet(server_->metrics_port(), "/metrics");
   EXPECT_NE(after.find("kinetri_steps_total{path="), std::string::npos);
-  EXPECT_NE(
-      after.find("kinetri_update_duration_seconds_count{backend=\"cpu\"} 1"),
-      std::string::npos)
+  EXPECT_NE(after.find(absl::StrCat(
+                "kinetri_update_duration_seconds_count{backend=\"", kBackend,
+                "\"} 1")),
+            std::string::npos)
       << after;
-  EXPECT_NE(after.find("kinetri_query_duration_seconds_count{backend=\"cpu\","
-                       "op=\"nearest\"} 1"),
+  EXPECT_NE(after.find(absl::StrCat(
+                "kinetri_query_duration_seconds_count{backend=\"", kBackend,
+                "\",op=\"nearest\"} 1")),
             std::string::npos);
   EXPECT_NE(after.find("grpc_code=\"INVALID_ARGUMENT\""), std::string::npos);
   EXPECT_NE(after.find("kinetri_sessions 1"), std::string::npos);
