@@ -12,8 +12,8 @@ import json
 import sys
 from collections import defaultdict
 
-ENGINES = ["kinetri", "kinetri-1t", "cgal-rebuild", "cgal-move", "grid",
-           "nanoflann"]
+ENGINES = ["kinetri", "kinetri-1t", "kinetri-rounds", "kinetri-device",
+           "cgal-rebuild", "cgal-move", "grid", "nanoflann"]
 PHASES = ["update", "all_nn", "knn8", "radius8", "radius32", "points_nn",
           "points_radius8"]
 

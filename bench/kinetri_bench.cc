@@ -36,6 +36,9 @@
 #include "absl/strings/str_split.h"
 #include "bench/grid_engine.h"
 #include "bench/nanoflann_cloud.h"
+#ifdef KINETRI_BENCH_CUDA
+#include "core/device/cuda_backend.h"
+#endif
 #include "core/parallel.h"
 #include "core/program_flags.h"
 #include "core/queries.h"
@@ -56,9 +59,12 @@ ABSL_FLAG(double, engine_budget_s, 0,
 ABSL_FLAG(int, query_points, 100000, "arbitrary query points per step");
 ABSL_FLAG(std::string, engines, "",
           "comma-separated engines to run (default: all of kinetri, "
-          "kinetri-1t, kinetri-rounds, cgal-rebuild, cgal-move, grid, "
-          "nanoflann; kinetri-rounds is the round executor on all threads, "
-          "update and all-NN only)");
+          "kinetri-1t, kinetri-rounds, kinetri-device, cgal-rebuild, "
+          "cgal-move, grid, nanoflann; kinetri-rounds is the round executor "
+          "on all threads, kinetri-device the device executor (on a GPU "
+          "when built with CUDA and one is present, else its emulated "
+          "backend on CPU threads: not a speed claim), both update and "
+          "all-NN only)");
 
 namespace {
 
@@ -250,6 +256,9 @@ int main(int argc, char** argv) {
       "  kinetri-bench --json=out.json    N = 10K, 100K, 1M, 20 steps\n"
       "Workloads: paper (the note's DLA set-up), brownian 0.01/0.1/1 "
       "spacings, shear, vortex, clustered.");
+#ifdef KINETRI_BENCH_CUDA
+  kc::device::RegisterCudaBackend();
+#endif
   const std::string commit = SourceCommit();
   const bool quick = absl::GetFlag(FLAGS_quick);
   std::vector<size_t> sizes = quick
@@ -269,8 +278,8 @@ int main(int argc, char** argv) {
   const size_t num_queries =
       static_cast<size_t>(std::max(0, absl::GetFlag(FLAGS_query_points)));
   std::set<std::string> engines = {
-      "kinetri",   "kinetri-1t", "kinetri-rounds", "cgal-rebuild",
-      "cgal-move", "grid",       "nanoflann"};
+      "kinetri",   "kinetri-1t", "kinetri-rounds", "kinetri-device",
+      "cgal-rebuild", "cgal-move", "grid",       "nanoflann"};
   if (!absl::GetFlag(FLAGS_engines).empty()) {
     std::set<std::string> want;
     for (auto e : absl::StrSplit(absl::GetFlag(FLAGS_engines), ',')) {
@@ -349,7 +358,7 @@ int main(int argc, char** argv) {
       auto on = [&](const std::string& e) {
         return engines.count(e) && !failed[e] && !stopped[e];
       };
-      std::unique_ptr<kc::Triangulation> tri, tri1, tri_rounds;
+      std::unique_ptr<kc::Triangulation> tri, tri1, tri_rounds, tri_device;
       {
         auto t = kc::Triangulation::Create(w.start);
         tri = std::make_unique<kc::Triangulation>(*std::move(t));
@@ -364,6 +373,24 @@ int main(int argc, char** argv) {
           rounds.executor = kc::Executor::kRounds;
           auto tr = kc::Triangulation::Create(w.start, rounds);
           tri_rounds = std::make_unique<kc::Triangulation>(*std::move(tr));
+        }
+        if (engines.count("kinetri-device")) {
+          kc::TriangulationOptions dev;
+          dev.executor = kc::Executor::kDevice;
+          dev.device_backend =
+              kc::device::DeviceBackendAvailable(
+                  kc::device::DeviceBackend::kCuda)
+                  ? kc::device::DeviceBackend::kCuda
+                  : kc::device::DeviceBackend::kEmulated;
+          auto td = kc::Triangulation::Create(w.start, dev);
+          if (!td.ok()) {
+            std::fprintf(stderr, "kinetri-device: %s\n",
+                         td.status().ToString().c_str());
+            return 1;
+          }
+          std::fprintf(stderr, "[bench] kinetri-device runs on the %s backend\n",
+                       kc::device::DeviceBackendName(dev.device_backend));
+          tri_device = std::make_unique<kc::Triangulation>(*std::move(td));
         }
       }
       std::unique_ptr<CgalDt> moving;  // CGAL move(): handles by point id
@@ -401,10 +428,12 @@ int main(int argc, char** argv) {
           spent[e] += ms;
         };
         // Kinetri (all threads; 1 thread for update + NN).
-        for (auto* t : {tri.get(), tri1.get(), tri_rounds.get()}) {
-          const std::string e = t == tri.get()    ? "kinetri"
-                                : t == tri1.get() ? "kinetri-1t"
-                                                  : "kinetri-rounds";
+        for (auto* t :
+             {tri.get(), tri1.get(), tri_rounds.get(), tri_device.get()}) {
+          const std::string e = t == tri.get()          ? "kinetri"
+                                : t == tri1.get()       ? "kinetri-1t"
+                                : t == tri_rounds.get() ? "kinetri-rounds"
+                                                        : "kinetri-device";
           if (t == nullptr || !on(e)) continue;
           auto t0 = Clock::now();
           auto rep = t->ApplyDisplacements(kc::DisplacementBatch::Dense(d));

@@ -2,7 +2,8 @@
 // times: for the region executor (default), with KINETRI_TEST_ROUNDS for the
 // round executor, and with KINETRI_TEST_DEVICE for the device executor on
 // its emulated backend (the CCCL source on CPU threads), so every sequence
-// checks all of them against CGAL.
+// checks all of them against CGAL. With KINETRI_TEST_CUDA (CUDA builds) the
+// same suites run on the CUDA backend, skipped where there is no GPU.
 #ifndef KINETRI_TESTS_CORE_EXECUTOR_UNDER_TEST_H_
 #define KINETRI_TESTS_CORE_EXECUTOR_UNDER_TEST_H_
 
@@ -10,7 +11,8 @@
 
 namespace kinetri::testing {
 
-#if defined(KINETRI_TEST_ROUNDS) || defined(KINETRI_TEST_DEVICE)
+#if defined(KINETRI_TEST_ROUNDS) || defined(KINETRI_TEST_DEVICE) || \
+    defined(KINETRI_TEST_CUDA)
 inline constexpr bool kRegionExecutor = false;
 #else
 inline constexpr bool kRegionExecutor = true;
@@ -23,6 +25,9 @@ inline core::TriangulationOptions ExecutorOptions() {
 #elif defined(KINETRI_TEST_DEVICE)
   o.executor = core::Executor::kDevice;
   o.device_backend = core::device::DeviceBackend::kEmulated;
+#elif defined(KINETRI_TEST_CUDA)
+  o.executor = core::Executor::kDevice;
+  o.device_backend = core::device::DeviceBackend::kCuda;
 #else
   o.executor = core::Executor::kRegions;
   // Test meshes are small: small regions make most of them parallel and

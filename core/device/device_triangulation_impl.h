@@ -1,11 +1,11 @@
 // The device-resident state of a DeviceTriangulation (CUDA sources only).
-#ifndef KINETRI_CORE_CUDA_DEVICE_TRIANGULATION_IMPL_H_
-#define KINETRI_CORE_CUDA_DEVICE_TRIANGULATION_IMPL_H_
+#ifndef KINETRI_CORE_DEVICE_DEVICE_TRIANGULATION_IMPL_H_
+#define KINETRI_CORE_DEVICE_DEVICE_TRIANGULATION_IMPL_H_
 
 #include <cstdint>
 
-#include "core/cuda/device_buffer.h"
-#include "core/cuda/device_triangulation.h"
+#include "core/device/device_buffer.h"
+#include "core/device/device_triangulation.h"
 #include "core/hint_grid.h"
 #include "core/triangulation_view.h"
 
@@ -24,4 +24,4 @@ struct DeviceTriangulation::Impl {
 
 }  // namespace kinetri::core::cuda
 
-#endif  // KINETRI_CORE_CUDA_DEVICE_TRIANGULATION_IMPL_H_
+#endif  // KINETRI_CORE_DEVICE_DEVICE_TRIANGULATION_IMPL_H_

@@ -5,8 +5,8 @@
 // with a device scan); the fixing/legalizing scans (invalid triangles,
 // illegal edges). Answers equal the CPU executor's (core/queries.h). Built
 // only with CUDA (KINETRI_CUDA); no CUDA types leak out.
-#ifndef KINETRI_CORE_CUDA_DEVICE_TRIANGULATION_H_
-#define KINETRI_CORE_CUDA_DEVICE_TRIANGULATION_H_
+#ifndef KINETRI_CORE_DEVICE_DEVICE_TRIANGULATION_H_
+#define KINETRI_CORE_DEVICE_DEVICE_TRIANGULATION_H_
 
 #include <cstdint>
 #include <memory>
@@ -62,4 +62,4 @@ class DeviceTriangulation {
 
 }  // namespace kinetri::core::cuda
 
-#endif  // KINETRI_CORE_CUDA_DEVICE_TRIANGULATION_H_
+#endif  // KINETRI_CORE_DEVICE_DEVICE_TRIANGULATION_H_

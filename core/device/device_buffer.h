@@ -1,6 +1,6 @@
 // CUDA-only helpers: error conversion and an owning device buffer.
-#ifndef KINETRI_CORE_CUDA_DEVICE_BUFFER_H_
-#define KINETRI_CORE_CUDA_DEVICE_BUFFER_H_
+#ifndef KINETRI_CORE_DEVICE_DEVICE_BUFFER_H_
+#define KINETRI_CORE_DEVICE_DEVICE_BUFFER_H_
 
 #include <cuda_runtime.h>
 
@@ -50,4 +50,4 @@ struct Buffer {
 
 }  // namespace kinetri::core::cuda
 
-#endif  // KINETRI_CORE_CUDA_DEVICE_BUFFER_H_
+#endif  // KINETRI_CORE_DEVICE_DEVICE_BUFFER_H_

@@ -1,5 +1,5 @@
 // CUDA executor vs the CPU executor: identical answers (skips without a GPU).
-#include "core/cuda/device_triangulation.h"
+#include "core/device/device_triangulation.h"
 
 #include <gtest/gtest.h>
 

@@ -5,9 +5,9 @@
 #include <vector>
 
 #include "absl/strings/str_cat.h"
-#include "core/cuda/device_buffer.h"
-#include "core/cuda/device_triangulation.h"
-#include "core/cuda/device_triangulation_impl.h"
+#include "core/device/device_buffer.h"
+#include "core/device/device_triangulation.h"
+#include "core/device/device_triangulation_impl.h"
 #include "core/flip_rules.h"
 #include "core/hint_grid.h"
 #include "core/query_walks.h"
