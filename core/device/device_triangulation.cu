@@ -128,8 +128,11 @@ absl::StatusOr<DeviceTriangulation> DeviceTriangulation::Upload(
                      (h.planar() ? sizeof(uint32_t) : 0)) +
       uint64_t{h.num_sites} * sizeof(uint32_t) * (h.planar() ? 1 : 2) +
       uint64_t{ne} * 2 * sizeof(uint32_t);
-  // Device exact predicates keep large expansions on the stack.
-  s = Check(cudaDeviceSetLimit(cudaLimitStackSize, 96 * 1024), "stack limit");
+  // Device exact predicates keep large expansions on the stack: the
+  // process-wide limit is raised once, never per call.
+  static const cudaError_t stack_limit =
+      cudaDeviceSetLimit(cudaLimitStackSize, 96 * 1024);
+  s = Check(stack_limit, "stack limit");
   if (!s.ok()) return s;
   return DeviceTriangulation(std::move(impl));
 }
