@@ -15,6 +15,7 @@
 
 #include "absl/flags/flag.h"
 #include "client/cpp/kinetri_client.h"
+#include "client/cpp/security_flags.h"
 #include "client/cpp/svg_writer.h"
 #include "core/program_flags.h"
 
@@ -103,7 +104,8 @@ int main(int argc, char** argv) {
     stuck[0] = true;
   }
 
-  kinetri::Client client(absl::GetFlag(FLAGS_server));
+  kinetri::Client client(absl::GetFlag(FLAGS_server), 131072,
+                         kinetri::SecurityFromFlags());
   auto t0 = Clock::now();
   auto session = client.CreateSession(xy, kinetri::v1::SessionOptions());
   if (!session.ok()) return Fail("create session", session.status());

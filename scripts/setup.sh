@@ -10,6 +10,7 @@ PACKAGES=(
   libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler
   prometheus-cpp-dev
   python3 python3-grpcio python3-protobuf python3-numpy python3-yaml
+  libssl-dev openssl
   redis-server gnuplot-nox
 )
 # Node.js (for client/node) comes with the machine image; it is not a Debian

@@ -12,9 +12,14 @@
 #include <string>
 #include <thread>
 
+#include <grpcpp/security/server_credentials.h>
+#include <grpcpp/security/tls_certificate_provider.h>
+#include <grpcpp/security/tls_credentials_options.h>
+
 #include "absl/flags/flag.h"
 #include "core/device/device_executor.h"
 #include "core/program_flags.h"
+#include "server/auth.h"
 #include "server/metrics.h"
 #include "server/service.h"
 #include "server/session_registry.h"
@@ -36,6 +41,22 @@ ABSL_FLAG(int, max_message_mb, 4,
           "largest gRPC message accepted, MiB (clients chunk to fit)");
 ABSL_FLAG(int, threads, 0,
           "worker threads per session on the CPU backend (0: all cores)");
+ABSL_FLAG(std::string, tls_cert, "",
+          "PEM certificate chain of the gRPC port (TLS on when set, with "
+          "--tls_key); re-read when the files change");
+ABSL_FLAG(std::string, tls_key, "", "PEM private key for --tls_cert");
+ABSL_FLAG(std::string, tls_client_ca, "",
+          "PEM CA bundle: require client certificates signed by it (mutual "
+          "TLS)");
+ABSL_FLAG(int, tls_reload_seconds, 10,
+          "how often the TLS files are checked for changes");
+ABSL_FLAG(std::string, auth_tokens_file, "",
+          "bearer tokens, one per line: TOKEN TENANT [sessions=N] [points=N]; "
+          "each tenant sees only its own sessions; re-read on SIGHUP and when "
+          "the file changes (empty: no authentication)");
+ABSL_FLAG(bool, insecure, false,
+          "allow listening on a non-loopback address without TLS and tokens "
+          "(protected mode refuses to start otherwise)");
 ABSL_FLAG(std::string, device, "auto",
           "device executor for sessions asking BACKEND_AUTO or BACKEND_CUDA: "
           "auto (a GPU when built with CUDA and one is present, else none), "
@@ -69,7 +90,9 @@ ABSL_FLAG(double, drain_delay_seconds, 0.0,
 
 namespace {
 std::atomic<bool> g_stop{false};
+std::atomic<bool> g_reload{false};
 void OnSignal(int) { g_stop = true; }
+void OnHangup(int) { g_reload = true; }
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -139,6 +162,53 @@ int main(int argc, char** argv) {
                 metrics_addr.c_str(), port);
   }
 
+  // Security: TLS (optionally mutual), bearer tokens with tenants, and
+  // protected mode (docs/SECURITY.md).
+  const std::string listen = absl::GetFlag(FLAGS_listen);
+  const std::string tls_cert = absl::GetFlag(FLAGS_tls_cert);
+  const std::string tls_key = absl::GetFlag(FLAGS_tls_key);
+  const std::string tls_ca = absl::GetFlag(FLAGS_tls_client_ca);
+  if (tls_cert.empty() != tls_key.empty() ||
+      (!tls_ca.empty() && tls_cert.empty())) {
+    std::fprintf(stderr,
+                 "kinetri-server: --tls_cert and --tls_key go together; "
+                 "--tls_client_ca needs them\n");
+    return 2;
+  }
+  for (const std::string& f : {tls_cert, tls_key, tls_ca}) {
+    if (f.empty()) continue;
+    std::FILE* probe = std::fopen(f.c_str(), "r");
+    if (probe == nullptr) {
+      std::fprintf(stderr, "kinetri-server: cannot read %s\n", f.c_str());
+      return 2;
+    }
+    std::fclose(probe);
+  }
+  const bool tls = !tls_cert.empty();
+  std::unique_ptr<kinetri::server::TokenAuth> auth;
+  if (!absl::GetFlag(FLAGS_auth_tokens_file).empty()) {
+    auto loaded =
+        kinetri::server::TokenAuth::Load(absl::GetFlag(FLAGS_auth_tokens_file));
+    if (!loaded.ok()) {
+      std::fprintf(stderr, "kinetri-server: %s\n",
+                   std::string(loaded.status().message()).c_str());
+      return 2;
+    }
+    auth = *std::move(loaded);
+    std::printf("kinetri-server: %zu bearer tokens (--auth_tokens_file)\n",
+                auth->size());
+  }
+  if (!kinetri::server::IsLoopbackAddress(listen) && !(tls && auth) &&
+      !absl::GetFlag(FLAGS_insecure)) {
+    std::fprintf(stderr,
+                 "kinetri-server: protected mode: refusing to listen on %s "
+                 "(not loopback) without TLS (--tls_cert, --tls_key) and "
+                 "tokens (--auth_tokens_file); pass --insecure to do it "
+                 "anyway\n",
+                 listen.c_str());
+    return 2;
+  }
+
   kinetri::server::IdleWatchdog watchdog(std::chrono::seconds(
       std::max(0, absl::GetFlag(FLAGS_stream_idle_timeout_seconds))));
   const int64_t memory_mb = absl::GetFlag(FLAGS_max_memory_mb);
@@ -147,7 +217,7 @@ int main(int argc, char** argv) {
       : memory_mb == 0 ? kinetri::server::MemoryBudget::DefaultLimit()
                        : static_cast<uint64_t>(memory_mb) << 20);
   kinetri::server::KinetriServiceImpl service(&registry, &metrics, &watchdog,
-                                              &budget);
+                                              &budget, auth.get());
   if (budget.limit() > 0) {
     std::printf("kinetri-server: memory budget %llu MiB (--max_memory_mb)\n",
                 static_cast<unsigned long long>(budget.limit() >> 20));
@@ -156,8 +226,31 @@ int main(int argc, char** argv) {
   grpc::reflection::InitProtoReflectionServerBuilderPlugin();
   grpc::ServerBuilder builder;
   int port = 0;
-  builder.AddListeningPort(absl::GetFlag(FLAGS_listen),
-                           grpc::InsecureServerCredentials(), &port);
+  std::shared_ptr<grpc::ServerCredentials> credentials =
+      grpc::InsecureServerCredentials();
+  if (tls) {
+    // The provider re-reads the files when they change: certificates are
+    // rotated without a restart and without dropping sessions.
+    auto provider =
+        std::make_shared<grpc::experimental::FileWatcherCertificateProvider>(
+            tls_key, tls_cert, tls_ca,
+            std::max(1, absl::GetFlag(FLAGS_tls_reload_seconds)));
+    grpc::experimental::TlsServerCredentialsOptions options(provider);
+    options.watch_identity_key_cert_pairs();
+    if (!tls_ca.empty()) {
+      options.watch_root_certs();
+      options.set_cert_request_type(
+          GRPC_SSL_REQUEST_AND_REQUIRE_CLIENT_CERTIFICATE_AND_VERIFY);
+    } else {
+      options.set_cert_request_type(GRPC_SSL_DONT_REQUEST_CLIENT_CERTIFICATE);
+    }
+    credentials = grpc::experimental::TlsServerCredentials(options);
+  }
+  std::printf("kinetri-server: %s%s, %s\n",
+              tls ? "TLS" : "plaintext (no TLS)",
+              tls && !tls_ca.empty() ? " with client certificates" : "",
+              auth ? "bearer tokens required" : "no authentication");
+  builder.AddListeningPort(listen, credentials, &port);
   const int max_bytes = absl::GetFlag(FLAGS_max_message_mb) * 1024 * 1024;
   // gRPC sets SO_REUSEPORT by default: a second server on the same port
   // would start and split the clients between two session sets.
@@ -197,7 +290,22 @@ int main(int argc, char** argv) {
 
   std::signal(SIGTERM, OnSignal);
   std::signal(SIGINT, OnSignal);
-  while (!g_stop) std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  std::signal(SIGHUP, OnHangup);
+  int ticks = 0;
+  while (!g_stop) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    // Tokens: re-read on SIGHUP and when the file changes (checked every
+    // second); a broken file keeps the previous tokens.
+    const bool hangup = g_reload.exchange(false);
+    if (auth && (hangup || ++ticks % 20 == 0)) {
+      const absl::Status st =
+          hangup ? auth->Reload() : auth->ReloadIfChanged();
+      if (!st.ok()) {
+        std::fprintf(stderr, "kinetri-server: tokens not reloaded: %s\n",
+                     std::string(st.message()).c_str());
+      }
+    }
+  }
 
   std::printf("kinetri-server: draining\n");
   std::fflush(stdout);

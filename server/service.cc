@@ -106,6 +106,12 @@ v1::Session Describe(const Session& s) {
 
 }  // namespace
 
+absl::StatusOr<Tenant> KinetriServiceImpl::Caller(
+    const grpc::ServerContext& ctx) const {
+  if (auth_ == nullptr) return Tenant{};
+  return auth_->Authenticate(ctx);
+}
+
 void KinetriServiceImpl::UpdateGauges() {
   metrics_->SetSessions(static_cast<double>(registry_->size()),
                         static_cast<double>(registry_->total_points()));
@@ -116,6 +122,8 @@ grpc::Status KinetriServiceImpl::CreateSession(
     grpc::ServerReader<v1::CreateSessionRequest>* reader,
     v1::Session* response) {
   RpcScope rpc(metrics_, "CreateSession", "client_stream");
+  auto tenant = Caller(*ctx);
+  if (!tenant.ok()) return rpc.Done(ToGrpc(tenant.status()));
   v1::CreateSessionRequest msg;
   if (!reader->Read(&msg) || !msg.has_header()) {
     return rpc.Done(grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
@@ -123,7 +131,7 @@ grpc::Status KinetriServiceImpl::CreateSession(
                                  "session header"));
   }
   const v1::CreateSessionHeader header = msg.header();
-  absl::Status st = registry_->CheckCapacity(header.point_count());
+  absl::Status st = registry_->CheckCapacity(header.point_count(), *tenant);
   if (!st.ok()) return rpc.Done(ToGrpc(st));
   std::string id = header.session_id();
   if (id.empty()) {
@@ -264,27 +272,31 @@ grpc::Status KinetriServiceImpl::CreateSession(
       on_device ? core::device::DeviceBackendName(limits.device) : "cpu",
                                            max_results, threads, std::move(ids),
                                            std::move(*memory), budget_);
-  auto added = registry_->Add(session);
+  auto added = registry_->Add(session, *tenant);
   if (!added.ok()) return rpc.Done(ToGrpc(added.status()));
   *response = Describe(**added);
   UpdateGauges();
   return rpc.Done(grpc::Status::OK);
 }
 
-grpc::Status KinetriServiceImpl::GetSession(grpc::ServerContext*,
+grpc::Status KinetriServiceImpl::GetSession(grpc::ServerContext* ctx,
                                             const v1::GetSessionRequest* req,
                                             v1::Session* response) {
   RpcScope rpc(metrics_, "GetSession", "unary");
-  auto s = registry_->Get(req->name());
+  auto tenant = Caller(*ctx);
+  if (!tenant.ok()) return rpc.Done(ToGrpc(tenant.status()));
+  auto s = registry_->Get(req->name(), tenant->name);
   if (!s.ok()) return rpc.Done(ToGrpc(s.status()));
   *response = Describe(**s);
   return rpc.Done(grpc::Status::OK);
 }
 
 grpc::Status KinetriServiceImpl::ListSessions(
-    grpc::ServerContext*, const v1::ListSessionsRequest* req,
+    grpc::ServerContext* ctx, const v1::ListSessionsRequest* req,
     v1::ListSessionsResponse* response) {
   RpcScope rpc(metrics_, "ListSessions", "unary");
+  auto tenant = Caller(*ctx);
+  if (!tenant.ok()) return rpc.Done(ToGrpc(tenant.status()));
   if (req->page_size() < 0) {
     return rpc.Done(grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                                  "page_size: must be >= 0"));
@@ -297,7 +309,7 @@ grpc::Status KinetriServiceImpl::ListSessions(
     if (!id.ok()) return rpc.Done(ToGrpc(id.status()));
     after = *id;
   }
-  auto list = registry_->List(after, page + 1);
+  auto list = registry_->List(after, page + 1, tenant->name);
   for (size_t i = 0; i < list.size() && i < page; ++i) {
     *response->add_sessions() = Describe(*list[i]);
   }
@@ -308,10 +320,12 @@ grpc::Status KinetriServiceImpl::ListSessions(
 }
 
 grpc::Status KinetriServiceImpl::DeleteSession(
-    grpc::ServerContext*, const v1::DeleteSessionRequest* req,
+    grpc::ServerContext* ctx, const v1::DeleteSessionRequest* req,
     google::protobuf::Empty*) {
   RpcScope rpc(metrics_, "DeleteSession", "unary");
-  const absl::Status st = registry_->Remove(req->name());
+  auto tenant = Caller(*ctx);
+  if (!tenant.ok()) return rpc.Done(ToGrpc(tenant.status()));
+  const absl::Status st = registry_->Remove(req->name(), tenant->name);
   UpdateGauges();
   return rpc.Done(ToGrpc(st));
 }
@@ -320,6 +334,8 @@ grpc::Status KinetriServiceImpl::StreamSteps(
     grpc::ServerContext* ctx,
     grpc::ServerReaderWriter<v1::StepResponse, v1::StepRequest>* stream) {
   RpcScope rpc(metrics_, "StreamSteps", "bidi_stream");
+  auto tenant = Caller(*ctx);
+  if (!tenant.ok()) return rpc.Done(ToGrpc(tenant.status()));
   std::shared_ptr<Session> session;
   StepAssembler assembler;
   v1::StepRequest req;
@@ -335,7 +351,7 @@ grpc::Status KinetriServiceImpl::StreamSteps(
             grpc::StatusCode::INVALID_ARGUMENT,
             "session: required on the first message of the stream"));
       }
-      auto s = registry_->Get(req.session());
+      auto s = registry_->Get(req.session(), tenant->name);
       if (!s.ok()) return rpc.Done(ToGrpc(s.status()));
       session = *s;
     } else if (!req.session().empty() && req.session() != session->name()) {
@@ -394,7 +410,9 @@ grpc::Status KinetriServiceImpl::Query(
     grpc::ServerContext* ctx, const v1::QueryRequest* req,
     grpc::ServerWriter<v1::QueryResponse>* writer) {
   RpcScope rpc(metrics_, "Query", "server_stream");
-  auto s = registry_->Get(req->session());
+  auto tenant = Caller(*ctx);
+  if (!tenant.ok()) return rpc.Done(ToGrpc(tenant.status()));
+  auto s = registry_->Get(req->session(), tenant->name);
   if (!s.ok()) return rpc.Done(ToGrpc(s.status()));
   Session& session = **s;
   std::string op;
@@ -551,7 +569,9 @@ grpc::Status KinetriServiceImpl::ExportTriangulation(
     grpc::ServerContext* ctx, const v1::ExportTriangulationRequest* req,
     grpc::ServerWriter<v1::ExportTriangulationResponse>* writer) {
   RpcScope rpc(metrics_, "ExportTriangulation", "server_stream");
-  auto s = registry_->Get(req->session());
+  auto tenant = Caller(*ctx);
+  if (!tenant.ok()) return rpc.Done(ToGrpc(tenant.status()));
+  auto s = registry_->Get(req->session(), tenant->name);
   if (!s.ok()) return rpc.Done(ToGrpc(s.status()));
   std::vector<core::Vec2> pos;
   std::vector<std::array<uint32_t, 3>> tris;

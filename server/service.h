@@ -6,6 +6,7 @@
 #include <string>
 
 #include "kinetri/v1/kinetri.grpc.pb.h"
+#include "server/auth.h"
 #include "server/idle_watchdog.h"
 #include "server/memory_budget.h"
 #include "server/metrics.h"
@@ -17,12 +18,16 @@ class KinetriServiceImpl final : public v1::KinetriService::Service {
  public:
   // `watchdog` cancels step and creation streams that stop sending;
   // `budget` admits creations and step copies before they allocate.
+  // `auth` (optional): bearer tokens and tenants; null: authentication
+  // off.
   KinetriServiceImpl(SessionRegistry* registry, Metrics* metrics,
-                     IdleWatchdog* watchdog, MemoryBudget* budget)
+                     IdleWatchdog* watchdog, MemoryBudget* budget,
+                     const TokenAuth* auth = nullptr)
       : registry_(registry),
         metrics_(metrics),
         watchdog_(watchdog),
-        budget_(budget) {}
+        budget_(budget),
+        auth_(auth) {}
 
   grpc::Status CreateSession(
       grpc::ServerContext* ctx,
@@ -49,11 +54,14 @@ class KinetriServiceImpl final : public v1::KinetriService::Service {
 
  private:
   void UpdateGauges();
+  // The caller's tenant; UNAUTHENTICATED without a valid token.
+  absl::StatusOr<Tenant> Caller(const grpc::ServerContext& ctx) const;
 
   SessionRegistry* registry_;
   Metrics* metrics_;
   IdleWatchdog* watchdog_;
   MemoryBudget* budget_;
+  const TokenAuth* auth_;
 };
 
 }  // namespace kinetri::server

@@ -159,7 +159,41 @@ absl::StatusOr<std::string> ParseSessionName(const std::string& name,
   return name.substr(kPrefix.size());
 }
 
-absl::Status SessionRegistry::CheckCapacity(uint64_t points) const {
+namespace {
+
+std::string Key(const std::string& tenant, const std::string& id) {
+  return tenant.empty() ? id : absl::StrCat(tenant, "/", id);
+}
+
+}  // namespace
+
+absl::Status SessionRegistry::CheckTenantLocked(uint64_t points,
+                                                const Tenant& tenant) const {
+  if (tenant.max_sessions == 0 && tenant.max_points == 0) {
+    return absl::OkStatus();
+  }
+  uint64_t sessions = 0, total = 0;
+  const std::string prefix = Key(tenant.name, "");
+  for (auto it = sessions_.lower_bound(prefix);
+       it != sessions_.end() && absl::StartsWith(it->first, prefix); ++it) {
+    ++sessions;
+    total += it->second->point_count();
+  }
+  if (tenant.max_sessions != 0 && sessions >= tenant.max_sessions) {
+    return absl::ResourceExhaustedError(
+        absl::StrCat("tenant ", tenant.name, " holds its maximum of ",
+                     tenant.max_sessions, " sessions; delete one first"));
+  }
+  if (tenant.max_points != 0 && total + points > tenant.max_points) {
+    return absl::ResourceExhaustedError(absl::StrCat(
+        "tenant ", tenant.name, ": ", total, " points held + ", points,
+        " exceed its limit of ", tenant.max_points, " points"));
+  }
+  return absl::OkStatus();
+}
+
+absl::Status SessionRegistry::CheckCapacity(uint64_t points,
+                                            const Tenant& tenant) const {
   if (points > limits_.max_points_per_session) {
     return absl::ResourceExhaustedError(
         absl::StrCat("point_count: ", points, " exceeds the limit of ",
@@ -171,18 +205,21 @@ absl::Status SessionRegistry::CheckCapacity(uint64_t points) const {
         absl::StrCat("the server holds its maximum of ", limits_.max_sessions,
                      " sessions; delete one first"));
   }
-  return absl::OkStatus();
+  return CheckTenantLocked(points, tenant);
 }
 
 absl::StatusOr<std::shared_ptr<Session>> SessionRegistry::Add(
-    std::shared_ptr<Session> s) {
+    std::shared_ptr<Session> s, const Tenant& tenant) {
+  s->set_tenant(tenant.name);
   absl::MutexLock lock(&mu_);
   if (sessions_.size() >= limits_.max_sessions) {
     return absl::ResourceExhaustedError(
         absl::StrCat("the server holds its maximum of ", limits_.max_sessions,
                      " sessions; delete one first"));
   }
-  if (!sessions_.emplace(s->id(), s).second) {
+  absl::Status st = CheckTenantLocked(s->point_count(), tenant);
+  if (!st.ok()) return st;
+  if (!sessions_.emplace(Key(tenant.name, s->id()), s).second) {
     return absl::AlreadyExistsError(
         absl::StrCat("session_id: ", s->name(), " already exists"));
   }
@@ -190,45 +227,50 @@ absl::StatusOr<std::shared_ptr<Session>> SessionRegistry::Add(
 }
 
 absl::StatusOr<std::shared_ptr<Session>> SessionRegistry::Get(
-    const std::string& name) const {
+    const std::string& name, const std::string& tenant) const {
   auto id = ParseSessionName(name, "name");
   if (!id.ok()) return id.status();
   absl::MutexLock lock(&mu_);
-  auto it = sessions_.find(*id);
+  auto it = sessions_.find(Key(tenant, *id));
   if (it == sessions_.end()) {
     return absl::NotFoundError(absl::StrCat(name, " does not exist"));
   }
   return it->second;
 }
 
-absl::Status SessionRegistry::Remove(const std::string& name) {
+absl::Status SessionRegistry::Remove(const std::string& name,
+                                     const std::string& tenant) {
   auto id = ParseSessionName(name, "name");
   if (!id.ok()) return id.status();
   absl::MutexLock lock(&mu_);
-  if (sessions_.erase(*id) == 0) {
+  if (sessions_.erase(Key(tenant, *id)) == 0) {
     return absl::NotFoundError(absl::StrCat(name, " does not exist"));
   }
   return absl::OkStatus();
 }
 
 std::vector<std::shared_ptr<Session>> SessionRegistry::List(
-    const std::string& after, size_t limit) const {
+    const std::string& after, size_t limit, const std::string& tenant) const {
   absl::MutexLock lock(&mu_);
   std::vector<std::shared_ptr<Session>> out;
-  for (auto it = sessions_.upper_bound(after);
+  for (auto it = sessions_.upper_bound(Key(tenant, after));
        it != sessions_.end() && out.size() < limit; ++it) {
+    // The unnamed tenant's keys have no '/'; a named tenant's start with
+    // "tenant/".
+    const bool mine = tenant.empty()
+                          ? it->first.find('/') == std::string::npos
+                          : absl::StartsWith(it->first, Key(tenant, ""));
+    if (!mine) {
+      if (!tenant.empty()) break;  // past this tenant's range
+      continue;
+    }
     out.push_back(it->second);
   }
   return out;
 }
 
-std::string SessionRegistry::NewId() {
-  absl::MutexLock lock(&mu_);
-  std::string id;
-  do {
-    id = absl::StrFormat("s-%06d", next_id_++);
-  } while (sessions_.count(id));
-  return id;
+std::string SessionRegistry::NewId() const {
+  return absl::StrCat("s-", RandomHex128());
 }
 
 size_t SessionRegistry::size() const {

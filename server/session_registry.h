@@ -14,6 +14,7 @@
 #include "absl/time/time.h"
 #include "core/cancel.h"
 #include "core/triangulation.h"
+#include "server/auth.h"
 #include "server/memory_budget.h"
 
 namespace kinetri::server {
@@ -51,6 +52,9 @@ class Session {
           MemoryBudget* budget = nullptr);
 
   const std::string& id() const { return id_; }
+  // The tenant that owns it ("" without authentication); set before Add.
+  const std::string& tenant() const { return tenant_; }
+  void set_tenant(std::string tenant) { tenant_ = std::move(tenant); }
   std::string name() const { return "sessions/" + id_; }
   const std::string& backend() const { return backend_; }
   uint64_t max_query_results() const { return max_query_results_; }
@@ -93,6 +97,7 @@ class Session {
   } return_memory_;
   const std::string id_;
   const std::string backend_;
+  std::string tenant_;
   const uint64_t max_query_results_;
   const uint32_t threads_;
   const absl::Time create_time_;
@@ -116,26 +121,36 @@ class SessionRegistry {
 
   const ServerLimits& limits() const { return limits_; }
 
-  // Adds a session; ALREADY_EXISTS / RESOURCE_EXHAUSTED on conflict.
-  absl::StatusOr<std::shared_ptr<Session>> Add(std::shared_ptr<Session> s);
-  // Checks that one more session would fit (before building it).
-  absl::Status CheckCapacity(uint64_t points) const;
+  // Sessions are keyed by (tenant, id): a tenant sees and finds only its
+  // own (another tenant's session is NOT_FOUND, as if it did not exist).
+  // Adds a session for its tenant; ALREADY_EXISTS / RESOURCE_EXHAUSTED on
+  // conflict (server limits, then the tenant's own).
+  absl::StatusOr<std::shared_ptr<Session>> Add(std::shared_ptr<Session> s,
+                                               const Tenant& tenant = {});
+  // Checks that one more session of `points` would fit (before building it).
+  absl::Status CheckCapacity(uint64_t points, const Tenant& tenant = {}) const;
   // NOT_FOUND (naming the session) if absent; name is "sessions/{id}".
-  absl::StatusOr<std::shared_ptr<Session>> Get(const std::string& name) const;
-  absl::Status Remove(const std::string& name);
-  // Sessions with id > after, ascending, at most `limit`.
-  std::vector<std::shared_ptr<Session>> List(const std::string& after,
-                                             size_t limit) const;
-  std::string NewId();
+  absl::StatusOr<std::shared_ptr<Session>> Get(
+      const std::string& name, const std::string& tenant = "") const;
+  absl::Status Remove(const std::string& name, const std::string& tenant = "");
+  // The tenant's sessions with id > after, ascending, at most `limit`.
+  std::vector<std::shared_ptr<Session>> List(
+      const std::string& after, size_t limit,
+      const std::string& tenant = "") const;
+  // A fresh session id: "s-" and 128 random bits in hex (unguessable).
+  std::string NewId() const;
   size_t size() const;
   uint64_t total_points() const;
 
  private:
   const ServerLimits limits_;
   mutable absl::Mutex mu_;
+  absl::Status CheckTenantLocked(uint64_t points, const Tenant& tenant) const
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
+  // Key: "tenant/id" ("id" for the unnamed tenant); tenant names and ids
+  // contain no '/'.
   std::map<std::string, std::shared_ptr<Session>> sessions_
       ABSL_GUARDED_BY(mu_);
-  uint64_t next_id_ ABSL_GUARDED_BY(mu_) = 1;
 };
 
 // "sessions/{id}" -> id, or INVALID_ARGUMENT naming `field`.

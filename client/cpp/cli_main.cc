@@ -17,6 +17,7 @@
 #include "absl/strings/str_split.h"
 #include "absl/time/time.h"
 #include "client/cpp/kinetri_client.h"
+#include "client/cpp/security_flags.h"
 #include "core/program_flags.h"
 
 ABSL_FLAG(std::string, server, "127.0.0.1:50051", "kinetri-server address");
@@ -137,7 +138,8 @@ int main(int argc, char** argv) {
   if (cmd != "create" && cmd != "list" && session.empty()) {
     return Usage(cmd + ": --session=sessions/ID is required");
   }
-  kinetri::Client client(absl::GetFlag(FLAGS_server));
+  kinetri::Client client(absl::GetFlag(FLAGS_server), 131072,
+                         kinetri::SecurityFromFlags());
   if (cmd == "create") {
     const uint32_t random = absl::GetFlag(FLAGS_random);
     if (csv.empty() == (random == 0)) {

@@ -3,6 +3,9 @@
 #include "client/cpp/kinetri_client.h"
 
 #include <algorithm>
+#include <cstdlib>
+#include <fstream>
+#include <sstream>
 
 #include "absl/strings/str_cat.h"
 
@@ -14,13 +17,72 @@ absl::Status FromGrpc(const grpc::Status& s) {
                       s.error_message());
 }
 
-Client::Client(const std::string& target, size_t chunk_points)
-    : chunk_points_(std::max<size_t>(1, chunk_points)) {
+namespace {
+
+std::string Env(const char* name) {
+  const char* v = std::getenv(name);
+  return v != nullptr ? v : "";
+}
+
+absl::StatusOr<std::string> ReadFile(const std::string& path,
+                                     const char* what) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) {
+    return absl::FailedPreconditionError(
+        absl::StrCat(what, ": cannot read ", path));
+  }
+  std::ostringstream out;
+  out << in.rdbuf();
+  return out.str();
+}
+
+}  // namespace
+
+ClientSecurity ClientSecurity::FromEnvironment() {
+  ClientSecurity s;
+  s.token = Env("KINETRI_TOKEN");
+  s.ca_file = Env("KINETRI_CA");
+  s.cert_file = Env("KINETRI_CERT");
+  s.key_file = Env("KINETRI_KEY");
+  s.server_name = Env("KINETRI_TLS_SERVER_NAME");
+  return s;
+}
+
+Client::Client(const std::string& target, size_t chunk_points,
+               const ClientSecurity& security)
+    : token_(security.token), chunk_points_(std::max<size_t>(1, chunk_points)) {
   grpc::ChannelArguments args;
   args.SetMaxReceiveMessageSize(64 * 1024 * 1024);
-  channel_ = grpc::CreateCustomChannel(
-      target, grpc::InsecureChannelCredentials(), args);
+  std::shared_ptr<grpc::ChannelCredentials> credentials =
+      grpc::InsecureChannelCredentials();
+  if (!security.ca_file.empty() || !security.cert_file.empty()) {
+    grpc::SslCredentialsOptions ssl;
+    if (!security.ca_file.empty()) {
+      auto ca = ReadFile(security.ca_file, "CA file (KINETRI_CA)");
+      if (ca.ok()) ssl.pem_root_certs = *ca;
+      init_status_.Update(ca.status());
+    }
+    if (!security.cert_file.empty() || !security.key_file.empty()) {
+      auto cert = ReadFile(security.cert_file, "client certificate");
+      auto key = ReadFile(security.key_file, "client key");
+      if (cert.ok() && key.ok()) {
+        ssl.pem_cert_chain = *cert;
+        ssl.pem_private_key = *key;
+      }
+      init_status_.Update(cert.status());
+      init_status_.Update(key.status());
+    }
+    credentials = grpc::SslCredentials(ssl);
+    if (!security.server_name.empty()) {
+      args.SetSslTargetNameOverride(security.server_name);
+    }
+  }
+  channel_ = grpc::CreateCustomChannel(target, credentials, args);
   stub_ = v1::KinetriService::NewStub(channel_);
+}
+
+void Client::Prepare(grpc::ClientContext* ctx) const {
+  if (!token_.empty()) ctx->AddMetadata("authorization", "Bearer " + token_);
 }
 
 absl::StatusOr<v1::Session> Client::CreateSession(
@@ -41,7 +103,9 @@ absl::StatusOr<v1::Session> Client::CreateSessionWithIds(
   if (xy.size() % 2) {
     return absl::InvalidArgumentError("xy: odd number of coordinates");
   }
+  if (!init_status_.ok()) return init_status_;
   grpc::ClientContext ctx;
+  Prepare(&ctx);
   v1::Session session;
   auto writer = stub_->CreateSession(&ctx, &session);
   v1::CreateSessionRequest head;
@@ -67,7 +131,9 @@ absl::StatusOr<v1::Session> Client::CreateSessionWithIds(
 }
 
 absl::StatusOr<v1::Session> Client::GetSession(const std::string& name) {
+  if (!init_status_.ok()) return init_status_;
   grpc::ClientContext ctx;
+  Prepare(&ctx);
   v1::GetSessionRequest req;
   req.set_name(name);
   v1::Session s;
@@ -80,7 +146,9 @@ absl::StatusOr<std::vector<v1::Session>> Client::ListSessions() {
   std::vector<v1::Session> out;
   std::string token;
   do {
-    grpc::ClientContext ctx;
+    if (!init_status_.ok()) return init_status_;
+  grpc::ClientContext ctx;
+  Prepare(&ctx);
     v1::ListSessionsRequest req;
     req.set_page_size(100);
     req.set_page_token(token);
@@ -94,7 +162,9 @@ absl::StatusOr<std::vector<v1::Session>> Client::ListSessions() {
 }
 
 absl::Status Client::DeleteSession(const std::string& name) {
+  if (!init_status_.ok()) return init_status_;
   grpc::ClientContext ctx;
+  Prepare(&ctx);
   v1::DeleteSessionRequest req;
   req.set_name(name);
   google::protobuf::Empty empty;
@@ -106,11 +176,13 @@ absl::StatusOr<std::unique_ptr<StepStream>> Client::OpenSteps(
   auto s = GetSession(name);
   if (!s.ok()) return s.status();
   return std::make_unique<StepStream>(stub_.get(), name, s->step() + 1,
-                                      2 * chunk_points_);
+                                      2 * chunk_points_, token_);
 }
 
 absl::StatusOr<Neighbors> Client::Query(const v1::QueryRequest& request) {
+  if (!init_status_.ok()) return init_status_;
   grpc::ClientContext ctx;
+  Prepare(&ctx);
   auto reader = stub_->Query(&ctx, request);
   Neighbors out;
   out.offsets.push_back(0);
@@ -211,7 +283,9 @@ absl::StatusOr<Neighbors> Client::WithinRadiusOfPoints(
 }
 
 absl::StatusOr<Mesh> Client::Export(const std::string& name) {
+  if (!init_status_.ok()) return init_status_;
   grpc::ClientContext ctx;
+  Prepare(&ctx);
   v1::ExportTriangulationRequest req;
   req.set_session(name);
   auto reader = stub_->ExportTriangulation(&ctx, req);
@@ -231,10 +305,12 @@ absl::StatusOr<Mesh> Client::Export(const std::string& name) {
 }
 
 StepStream::StepStream(v1::KinetriService::Stub* stub, std::string session,
-                       uint64_t first_step, size_t chunk_values)
+                       uint64_t first_step, size_t chunk_values,
+                       const std::string& token)
     : session_(std::move(session)),
       next_step_(first_step),
       chunk_values_(std::max<size_t>(2, chunk_values & ~size_t{1})) {
+  if (!token.empty()) ctx_.AddMetadata("authorization", "Bearer " + token);
   stream_ = stub->StreamSteps(&ctx_);
 }
 

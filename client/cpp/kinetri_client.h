@@ -38,8 +38,10 @@ struct Mesh {
 // Sends one batch per simulation step on a long-lived stream.
 class StepStream {
  public:
+  // `token`: bearer token for the call ("" for none).
   StepStream(v1::KinetriService::Stub* stub, std::string session,
-             uint64_t first_step, size_t chunk_values);
+             uint64_t first_step, size_t chunk_values,
+             const std::string& token = "");
   ~StepStream();
 
   // Dense displacements (one x, y pair per point, in id order).
@@ -72,10 +74,27 @@ class StepStream {
   bool finished_ = false;
 };
 
+// How a client proves who it is and checks the server (docs/SECURITY.md).
+struct ClientSecurity {
+  std::string token;        // bearer token sent with every call
+  std::string ca_file;      // TLS when set: PEM CA bundle the server's
+                            // certificate must chain to
+  std::string cert_file;    // PEM client certificate (mutual TLS)
+  std::string key_file;     // its private key
+  std::string server_name;  // expected name in the server's certificate
+                            // (default: the target's host)
+  // From KINETRI_TOKEN, KINETRI_CA, KINETRI_CERT, KINETRI_KEY and
+  // KINETRI_TLS_SERVER_NAME (unset: empty, i.e. plaintext, no token).
+  static ClientSecurity FromEnvironment();
+};
+
 class Client {
  public:
   // target: "host:port". Points per message chunk: 1/4 of the 4 MiB limit.
-  explicit Client(const std::string& target, size_t chunk_points = 131072);
+  // Unreadable TLS files make every call fail with FAILED_PRECONDITION.
+  explicit Client(const std::string& target, size_t chunk_points = 131072,
+                  const ClientSecurity& security =
+                      ClientSecurity::FromEnvironment());
 
   absl::StatusOr<v1::Session> CreateSession(const std::vector<double>& xy,
                                             const v1::SessionOptions& options,
@@ -111,8 +130,12 @@ class Client {
   absl::StatusOr<Mesh> Export(const std::string& name);
 
   v1::KinetriService::Stub* stub() { return stub_.get(); }
+  // Adds the bearer token to a context the caller made for stub().
+  void Prepare(grpc::ClientContext* ctx) const;
 
  private:
+  absl::Status init_status_;  // TLS files that could not be read
+  std::string token_;
   std::shared_ptr<grpc::Channel> channel_;
   std::unique_ptr<v1::KinetriService::Stub> stub_;
   size_t chunk_points_;
