@@ -7,6 +7,7 @@
 // and come back as BigInt.
 'use strict';
 
+const fs = require('fs');
 const path = require('path');
 const grpc = require('@grpc/grpc-js');
 const protoLoader = require('@grpc/proto-loader');
@@ -147,14 +148,51 @@ class StepStream {
   }
 }
 
+function readPem(file, what) {
+  try {
+    return fs.readFileSync(file);
+  } catch (e) {
+    throw new Error(`${what}: cannot read ${file}: ${e.message}`);
+  }
+}
+
 class Client {
   // chunkPoints: points per message when uploading (default 131072).
-  constructor(target = '127.0.0.1:50051', {chunkPoints = CHUNK_VALUES / 2} = {}) {
+  // Security (docs/SECURITY.md): token (sent as a bearer token with every
+  // call), ca (PEM CA bundle: TLS on), cert + key (client certificate,
+  // mutual TLS), serverName (name expected in the server's certificate);
+  // each defaults to KINETRI_TOKEN, KINETRI_CA, KINETRI_CERT, KINETRI_KEY,
+  // KINETRI_TLS_SERVER_NAME. Unset: plaintext without a token.
+  constructor(target = '127.0.0.1:50051', {
+    chunkPoints = CHUNK_VALUES / 2,
+    token = process.env.KINETRI_TOKEN || '',
+    ca = process.env.KINETRI_CA || '',
+    cert = process.env.KINETRI_CERT || '',
+    key = process.env.KINETRI_KEY || '',
+    serverName = process.env.KINETRI_TLS_SERVER_NAME || '',
+  } = {}) {
     this.chunkValues = 2 * chunkPoints;
     const Service = loadService();
-    this.stub = new Service(target, grpc.credentials.createInsecure(), {
-      'grpc.max_receive_message_length': 64 << 20,
-    });
+    const options = {'grpc.max_receive_message_length': 64 << 20};
+    let credentials = grpc.credentials.createInsecure();
+    if (ca || cert) {
+      credentials = grpc.credentials.createSsl(
+          ca ? readPem(ca, 'ca') : null, cert ? readPem(key, 'key') : null,
+          cert ? readPem(cert, 'cert') : null);
+      if (serverName) options['grpc.ssl_target_name_override'] = serverName;
+    }
+    if (token) {
+      // On every call, streams included (an interceptor works on plaintext
+      // channels too, unlike call credentials).
+      options.interceptors = [(opts, nextCall) =>
+        new grpc.InterceptingCall(nextCall(opts), {
+          start(metadata, listener, next) {
+            metadata.add('authorization', `Bearer ${token}`);
+            next(metadata, listener);
+          },
+        })];
+    }
+    this.stub = new Service(target, credentials, options);
   }
 
   close() { this.stub.close(); }

@@ -12,10 +12,10 @@ const SERVER = process.env.KINETRI_SERVER ||
     require('node:path').join(__dirname, '..', '..', '..', 'build', 'server',
                               'kinetri-server');
 
-function startServer() {
+function startServer(flags = []) {
   return new Promise((resolve, reject) => {
     const proc = spawn(SERVER,
-                       ['--listen=127.0.0.1:0', '--metrics_listen=']);
+                       ['--listen=127.0.0.1:0', '--metrics_listen=', ...flags]);
     const rl = readline.createInterface({input: proc.stdout});
     rl.on('line', (line) => {
       const m = /listening on port (\d+)/.exec(line);
@@ -151,5 +151,51 @@ test('client ids: 64-bit, exact, end to end; sequential ids never wrap',
   } finally {
     client.close();
     proc.kill();
+  }
+});
+
+test('TLS with client certificates and a bearer token', async () => {
+  const fs = require('node:fs');
+  const os = require('node:os');
+  const path = require('node:path');
+  const dir = fs.mkdtempSync(path.join(os.tmpdir(), 'kinetri-node-tls-'));
+  const {execFileSync} = require('node:child_process');
+  execFileSync('bash', [path.join(__dirname, '..', '..', '..', 'tests', 'e2e',
+                                  'make_test_certs.sh'), dir]);
+  const f = (name) => path.join(dir, name);
+  const token = 'node-tenant-token-0123456789';
+  fs.writeFileSync(f('tokens'), `${token} node\n`);
+  const {proc, target} = await startServer([
+    `--tls_cert=${f('server.pem')}`, `--tls_key=${f('server.key')}`,
+    `--tls_client_ca=${f('ca.pem')}`, `--auth_tokens_file=${f('tokens')}`]);
+  const secure = (extra) => new Client(target, {
+    ca: f('ca.pem'), cert: f('client.pem'), key: f('client.key'), token,
+    ...extra});
+  try {
+    const c = secure({});
+    const xy = new Float64Array(600);
+    const r = rng(3);
+    for (let i = 0; i < xy.length; ++i) xy[i] = r();
+    const s = await c.createSession(xy, 'node-secure');
+    assert.strictEqual(s.name, 'sessions/node-secure');
+    assert.strictEqual((await c.listSessions()).length, 1);
+    await c.deleteSession(s.name);
+    c.close();
+    for (const [extra, code] of [
+      [{token: ''}, status.UNAUTHENTICATED],
+      [{token: 'wrong-token-0123456789'}, status.UNAUTHENTICATED],
+      [{cert: '', key: ''}, status.UNAVAILABLE],
+    ]) {
+      const bad = secure(extra);
+      await assert.rejects(bad.listSessions(), (e) => e.code === code);
+      bad.close();
+    }
+    const plain = new Client(target, {token, ca: '', cert: ''});
+    await assert.rejects(plain.listSessions(),
+                         (e) => e.code === status.UNAVAILABLE);
+    plain.close();
+  } finally {
+    proc.kill('SIGTERM');
+    fs.rmSync(dir, {recursive: true, force: true});
   }
 });

@@ -1,5 +1,7 @@
 """Idiomatic wrapper over the generated gRPC stubs."""
 
+import collections
+import os
 from dataclasses import dataclass
 from typing import Iterator, List, Optional, Sequence
 
@@ -174,15 +176,90 @@ class _RequestQueue:
             yield item
 
 
+class _BearerToken(grpc.UnaryUnaryClientInterceptor,
+                   grpc.UnaryStreamClientInterceptor,
+                   grpc.StreamUnaryClientInterceptor,
+                   grpc.StreamStreamClientInterceptor):
+    """Adds `authorization: Bearer TOKEN` to every call."""
+
+    def __init__(self, token: str):
+        self._md = ("authorization", "Bearer " + token)
+
+    def _details(self, d):
+        md = list(d.metadata or []) + [self._md]
+        return _CallDetails(d.method, d.timeout, md, d.credentials,
+                            getattr(d, "wait_for_ready", None),
+                            getattr(d, "compression", None))
+
+    def intercept_unary_unary(self, cont, d, req):
+        return cont(self._details(d), req)
+
+    def intercept_unary_stream(self, cont, d, req):
+        return cont(self._details(d), req)
+
+    def intercept_stream_unary(self, cont, d, it):
+        return cont(self._details(d), it)
+
+    def intercept_stream_stream(self, cont, d, it):
+        return cont(self._details(d), it)
+
+
+class _CallDetails(
+        collections.namedtuple(
+            "_CallDetails", ("method", "timeout", "metadata", "credentials",
+                             "wait_for_ready", "compression")),
+        grpc.ClientCallDetails):
+    pass
+
+
+def _read(path: str, what: str) -> bytes:
+    try:
+        with open(path, "rb") as f:
+            return f.read()
+    except OSError as e:
+        raise KinetriError(grpc.StatusCode.FAILED_PRECONDITION,
+                           f"{what}: cannot read {path}: {e.strerror}")
+
+
 class Client:
-    """Connects to a kinetri-server at `target` ("host:port")."""
+    """Connects to a kinetri-server at `target` ("host:port").
+
+    Security (docs/SECURITY.md): `token` is sent as a bearer token with every
+    call; `ca` (a PEM CA bundle) turns TLS on; `cert` and `key` add a client
+    certificate (mutual TLS); `server_name` overrides the name expected in
+    the server's certificate. Each defaults to its environment variable
+    (KINETRI_TOKEN, KINETRI_CA, KINETRI_CERT, KINETRI_KEY,
+    KINETRI_TLS_SERVER_NAME); unset means plaintext without a token.
+    """
 
     def __init__(self, target: str = "127.0.0.1:50051",
-                 chunk_points: int = _CHUNK_POINTS):
+                 chunk_points: int = _CHUNK_POINTS, *,
+                 token: Optional[str] = None, ca: Optional[str] = None,
+                 cert: Optional[str] = None, key: Optional[str] = None,
+                 server_name: Optional[str] = None):
+        env = os.environ.get
+        token = token if token is not None else env("KINETRI_TOKEN", "")
+        ca = ca if ca is not None else env("KINETRI_CA", "")
+        cert = cert if cert is not None else env("KINETRI_CERT", "")
+        key = key if key is not None else env("KINETRI_KEY", "")
+        server_name = (server_name if server_name is not None
+                       else env("KINETRI_TLS_SERVER_NAME", ""))
         self._chunk_points = chunk_points
-        self._channel = grpc.insecure_channel(
-            target, options=[("grpc.max_receive_message_length", 64 << 20)])
-        self._stub = pb_grpc.KinetriServiceStub(self._channel)
+        options = [("grpc.max_receive_message_length", 64 << 20)]
+        if ca or cert:
+            creds = grpc.ssl_channel_credentials(
+                root_certificates=_read(ca, "ca") if ca else None,
+                private_key=_read(key, "key") if cert else None,
+                certificate_chain=_read(cert, "cert") if cert else None)
+            if server_name:
+                options.append(("grpc.ssl_target_name_override", server_name))
+            self._channel = grpc.secure_channel(target, creds, options=options)
+        else:
+            self._channel = grpc.insecure_channel(target, options=options)
+        channel = self._channel
+        if token:
+            channel = grpc.intercept_channel(channel, _BearerToken(token))
+        self._stub = pb_grpc.KinetriServiceStub(channel)
         self._policy = {}  # session name -> uses client ids
 
     def close(self):

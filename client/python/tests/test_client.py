@@ -2,7 +2,9 @@
 
 import os
 import re
+import shutil
 import subprocess
+import tempfile
 import unittest
 
 import grpc
@@ -25,10 +27,10 @@ def server_binary():
     return binary
 
 
-def start_server():
+def start_server(*flags):
     binary = server_binary()
     proc = subprocess.Popen(
-        [binary, "--listen=127.0.0.1:0", "--metrics_listen="],
+        [binary, "--listen=127.0.0.1:0", "--metrics_listen=", *flags],
         stdout=subprocess.PIPE, text=True)
     for line in proc.stdout:
         m = re.search(r"listening on port (\d+)", line)
@@ -186,3 +188,84 @@ class ClientTest(unittest.TestCase):
 
 if __name__ == "__main__":
     unittest.main()
+
+
+class SecureClientTest(unittest.TestCase):
+    """TLS + bearer token (certificates made by openssl at test time)."""
+
+    TOKEN = "py-tenant-token-0123456789"
+
+    @classmethod
+    def setUpClass(cls):
+        cls.dir = tempfile.mkdtemp(prefix="kinetri-py-tls-")
+        here = os.path.dirname(os.path.abspath(__file__))
+        script = os.path.join(here, "..", "..", "..", "tests", "e2e",
+                              "make_test_certs.sh")
+        subprocess.run(["bash", script, cls.dir], check=True)
+        tokens = os.path.join(cls.dir, "tokens")
+        with open(tokens, "w") as f:
+            f.write(f"{cls.TOKEN} py\n")
+        f = lambda name: os.path.join(cls.dir, name)
+        cls.proc, cls.target = start_server(
+            f"--tls_cert={f('server.pem')}", f"--tls_key={f('server.key')}",
+            f"--tls_client_ca={f('ca.pem')}", f"--auth_tokens_file={tokens}")
+        cls.f = staticmethod(f)
+
+    @classmethod
+    def tearDownClass(cls):
+        cls.proc.terminate()
+        cls.proc.wait(timeout=30)
+        shutil.rmtree(cls.dir, ignore_errors=True)
+
+    def secure(self, **kw):
+        args = dict(ca=self.f("ca.pem"), cert=self.f("client.pem"),
+                    key=self.f("client.key"), token=self.TOKEN)
+        args.update(kw)
+        return Client(self.target, **args)
+
+    def test_tls_and_token(self):
+        rng = np.random.default_rng(9)
+        pts = rng.random((500, 2))
+        with self.secure() as c:
+            s = c.create_session(pts, session_id="py-secure")
+            steps = c.open_steps(s.name)
+            steps.move_by(rng.normal(0, 1e-3, (500, 2)))
+            nn = c.nearest_all(s.name)
+            self.assertEqual(len(nn.offsets), 501)
+            c.delete_session(s.name)
+
+    def test_refusals(self):
+        with self.secure(token="") as c:  # no token
+            with self.assertRaises(KinetriError) as e:
+                c.list_sessions()
+            self.assertEqual(e.exception.code,
+                             grpc.StatusCode.UNAUTHENTICATED)
+        with self.secure(token="wrong-token-0123456789") as c:
+            with self.assertRaises(KinetriError) as e:
+                c.list_sessions()
+            self.assertEqual(e.exception.code,
+                             grpc.StatusCode.UNAUTHENTICATED)
+        with self.secure(cert="", key="") as c:  # mutual TLS: no cert
+            with self.assertRaises(KinetriError) as e:
+                c.list_sessions()
+            self.assertEqual(e.exception.code, grpc.StatusCode.UNAVAILABLE)
+        with Client(self.target, token=self.TOKEN, ca="") as c:  # plaintext
+            with self.assertRaises(KinetriError) as e:
+                c.list_sessions()
+            self.assertEqual(e.exception.code, grpc.StatusCode.UNAVAILABLE)
+
+    def test_environment_variables(self):
+        env = {"KINETRI_TOKEN": self.TOKEN, "KINETRI_CA": self.f("ca.pem"),
+               "KINETRI_CERT": self.f("client.pem"),
+               "KINETRI_KEY": self.f("client.key")}
+        old = {k: os.environ.get(k) for k in env}
+        os.environ.update(env)
+        try:
+            with Client(self.target) as c:
+                self.assertIsInstance(c.list_sessions(), list)
+        finally:
+            for k, v in old.items():
+                if v is None:
+                    os.environ.pop(k, None)
+                else:
+                    os.environ[k] = v
