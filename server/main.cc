@@ -54,6 +54,9 @@ ABSL_FLAG(std::string, auth_tokens_file, "",
           "bearer tokens, one per line: TOKEN TENANT [sessions=N] [points=N]; "
           "each tenant sees only its own sessions; re-read on SIGHUP and when "
           "the file changes (empty: no authentication)");
+ABSL_FLAG(std::string, health_listen, "",
+          "extra plaintext port serving only grpc.health.v1 (for probes that "
+          "cannot speak TLS, e.g. Kubernetes gRPC probes); empty: none");
 ABSL_FLAG(bool, insecure, false,
           "allow listening on a non-loopback address without TLS and tokens "
           "(protected mode refuses to start otherwise)");
@@ -283,6 +286,26 @@ int main(int argc, char** argv) {
                  absl::GetFlag(FLAGS_listen).c_str());
     return 1;
   }
+  // Probes that cannot speak TLS get their own plaintext port with the
+  // health service alone (no Kinetri calls, no tokens travel on it).
+  std::unique_ptr<grpc::Server> health_server;
+  if (!absl::GetFlag(FLAGS_health_listen).empty()) {
+    grpc::ServerBuilder health_builder;
+    int health_port = 0;
+    health_builder.AddListeningPort(absl::GetFlag(FLAGS_health_listen),
+                                    grpc::InsecureServerCredentials(),
+                                    &health_port);
+    health_server = health_builder.BuildAndStart();
+    if (!health_server || health_port == 0 ||
+        health_server->GetHealthCheckService() == nullptr) {
+      std::fprintf(stderr, "kinetri-server: cannot serve health on %s\n",
+                   absl::GetFlag(FLAGS_health_listen).c_str());
+      return 1;
+    }
+    health_server->GetHealthCheckService()->SetServingStatus(true);
+    std::printf("kinetri-server: health on port %d (%s, plaintext)\n",
+                health_port, absl::GetFlag(FLAGS_health_listen).c_str());
+  }
   server->GetHealthCheckService()->SetServingStatus(true);
   std::printf("kinetri-server: listening on port %d (%s)\n", port,
               absl::GetFlag(FLAGS_listen).c_str());
@@ -310,12 +333,19 @@ int main(int argc, char** argv) {
   std::printf("kinetri-server: draining\n");
   std::fflush(stdout);
   server->GetHealthCheckService()->SetServingStatus(false);
+  if (health_server) {
+    health_server->GetHealthCheckService()->SetServingStatus(false);
+  }
   std::this_thread::sleep_for(
       std::chrono::duration<double>(absl::GetFlag(FLAGS_drain_delay_seconds)));
   server->Shutdown(
       std::chrono::system_clock::now() +
       std::chrono::seconds(absl::GetFlag(FLAGS_shutdown_grace_seconds)));
   server->Wait();
+  if (health_server) {
+    health_server->Shutdown(std::chrono::system_clock::now());
+    health_server->Wait();
+  }
   std::printf("kinetri-server: stopped\n");
   return 0;
 }

@@ -53,8 +53,43 @@ class DeployFilesTest(unittest.TestCase):
         self.assertEqual(service["spec"]["clusterIP"], "None")
         sts = next(d for d in docs if d["kind"] == "StatefulSet")
         container = sts["spec"]["template"]["spec"]["containers"][0]
-        self.assertEqual(container["readinessProbe"]["grpc"]["port"], 50051)
-        self.assertEqual(container["livenessProbe"]["grpc"]["port"], 50051)
+        # Probes on the plaintext health-only port (kubelet gRPC probes
+        # cannot speak TLS).
+        self.assertEqual(container["readinessProbe"]["grpc"]["port"], 8081)
+        self.assertEqual(container["livenessProbe"]["grpc"]["port"], 8081)
+
+    def test_secure_by_default(self):
+        """TLS + tokens from mounted secrets, a numeric non-root user, a
+        read-only root filesystem (docs/SECURITY.md)."""
+        for name in ("Dockerfile", "Dockerfile.cuda"):
+            text = (DEPLOY / name).read_text()
+            for flag in ("--tls_cert=/etc/kinetri/tls/tls.crt",
+                         "--tls_key=/etc/kinetri/tls/tls.key",
+                         "--auth_tokens_file=/etc/kinetri/auth/tokens",
+                         "--health_listen=0.0.0.0:8081"):
+                self.assertIn(flag, text, name)
+            self.assertRegex(text, r"(?m)^USER 10001:10001$")
+        for path in (DEPLOY / "k8s" / "kinetri.yaml",
+                     DEPLOY / "k8s-cuda" / "kinetri-cuda.yaml"):
+            docs = list(yaml.safe_load_all(path.read_text()))
+            pod = next(d for d in docs
+                       if d["kind"] == "StatefulSet")["spec"]["template"]["spec"]
+            c = pod["containers"][0]
+            sc = c["securityContext"]
+            self.assertTrue(sc["runAsNonRoot"] and sc["readOnlyRootFilesystem"])
+            self.assertEqual(sc["runAsUser"], 10001)
+            self.assertFalse(sc["allowPrivilegeEscalation"])
+            mounts = {m["mountPath"]: m["name"] for m in c["volumeMounts"]}
+            secrets = {v["name"]: v["secret"]["secretName"]
+                       for v in pod["volumes"]}
+            self.assertEqual(secrets[mounts["/etc/kinetri/tls"]], "kinetri-tls")
+            self.assertEqual(secrets[mounts["/etc/kinetri/auth"]],
+                             "kinetri-tokens")
+        compose = yaml.safe_load((DEPLOY / "compose.yaml").read_text())
+        k = compose["services"]["kinetri"]
+        self.assertTrue(k["read_only"])
+        self.assertEqual(k["user"], "10001:10001")
+        self.assertIn("./secrets/tls:/etc/kinetri/tls:ro", k["volumes"])
 
     def test_dashboard_metrics_exist(self):
         dash = json.loads((DEPLOY / "grafana" / "dashboards" / "kinetri.json").read_text())

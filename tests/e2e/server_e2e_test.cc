@@ -419,50 +419,14 @@ TEST_F(E2eTest, MetricsMove) {
   EXPECT_NE(after.find("kinetri_sessions 1"), std::string::npos);
 }
 
-// grpc.health.v1.Health/Check for the whole server, via the generic stub
-// (the health proto is not installed): returns 1 SERVING, 2 NOT_SERVING,
-// -1 if the call failed.
-int HealthStatus(const std::string& target) {
-  auto channel =
-      grpc::CreateChannel(target, grpc::InsecureChannelCredentials());
-  grpc::GenericStub stub(channel);
-  grpc::ClientContext ctx;
-  ctx.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(5));
-  grpc::Slice empty;  // an empty HealthCheckRequest (service "")
-  grpc::ByteBuffer request(&empty, 1), response;
-  std::mutex mu;
-  std::condition_variable cv;
-  bool done = false;
-  grpc::Status status;
-  stub.UnaryCall(&ctx, "/grpc.health.v1.Health/Check", grpc::StubOptions(),
-                 &request, &response, [&](grpc::Status s) {
-                   std::lock_guard<std::mutex> lock(mu);
-                   status = s;
-                   done = true;
-                   cv.notify_one();
-                 });
-  std::unique_lock<std::mutex> lock(mu);
-  cv.wait(lock, [&] { return done; });
-  if (!status.ok()) return -1;
-  std::vector<grpc::Slice> slices;
-  if (!response.Dump(&slices).ok()) return -1;
-  std::string bytes;
-  for (const auto& sl : slices) {
-    bytes.append(reinterpret_cast<const char*>(sl.begin()), sl.size());
-  }
-  // HealthCheckResponse { status (field 1, enum) }: tag 0x08, then value.
-  if (bytes.size() == 2 && bytes[0] == 0x08) return bytes[1];
-  return -1;
-}
-
 TEST(E2eShutdown, HealthTurnsNotServingWhileDraining) {
   testing::ServerProcess server(KINETRI_SERVER_BINARY,
                                 {"--drain_delay_seconds=3"});
   ASSERT_TRUE(server.ok());
-  EXPECT_EQ(HealthStatus(server.target()), 1);
+  EXPECT_EQ(testing::HealthStatus(server.target()), 1);
   server.Signal(SIGTERM);
   std::this_thread::sleep_for(std::chrono::milliseconds(800));
-  EXPECT_EQ(HealthStatus(server.target()), 2);
+  EXPECT_EQ(testing::HealthStatus(server.target()), 2);
   EXPECT_EQ(server.Stop(), 0);
 }
 

@@ -8,8 +8,14 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <grpcpp/generic/generic_stub.h>
+#include <grpcpp/grpcpp.h>
+
+#include <chrono>
+#include <condition_variable>
 #include <cstdio>
 #include <cstring>
+#include <mutex>
 #include <random>
 #include <string>
 
@@ -40,6 +46,9 @@ ServerProcess::ServerProcess(const std::string& binary,
     if (std::sscanf(line, "kinetri-server: metrics on %*s (port %d)", &p) ==
         1) {
       metrics_port_ = p;
+    } else if (std::sscanf(line, "kinetri-server: health on port %d", &p) ==
+               1) {
+      health_port_ = p;
     } else if (std::sscanf(line, "kinetri-server: listening on port %d", &p) ==
                1) {
       grpc_port_ = p;
@@ -123,6 +132,42 @@ std::string HttpGet(int port, const std::string& path) {
   close(fd);
   const size_t sep = body.find("\r\n\r\n");
   return sep == std::string::npos ? "" : body.substr(sep + 4);
+}
+
+// grpc.health.v1.Health/Check for the whole server, via the generic stub
+// (the health proto is not installed): returns 1 SERVING, 2 NOT_SERVING,
+// -1 if the call failed.
+int HealthStatus(const std::string& target) {
+  auto channel =
+      grpc::CreateChannel(target, grpc::InsecureChannelCredentials());
+  grpc::GenericStub stub(channel);
+  grpc::ClientContext ctx;
+  ctx.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(5));
+  grpc::Slice empty;  // an empty HealthCheckRequest (service "")
+  grpc::ByteBuffer request(&empty, 1), response;
+  std::mutex mu;
+  std::condition_variable cv;
+  bool done = false;
+  grpc::Status status;
+  stub.UnaryCall(&ctx, "/grpc.health.v1.Health/Check", grpc::StubOptions(),
+                 &request, &response, [&](grpc::Status s) {
+                   std::lock_guard<std::mutex> lock(mu);
+                   status = s;
+                   done = true;
+                   cv.notify_one();
+                 });
+  std::unique_lock<std::mutex> lock(mu);
+  cv.wait(lock, [&] { return done; });
+  if (!status.ok()) return -1;
+  std::vector<grpc::Slice> slices;
+  if (!response.Dump(&slices).ok()) return -1;
+  std::string bytes;
+  for (const auto& sl : slices) {
+    bytes.append(reinterpret_cast<const char*>(sl.begin()), sl.size());
+  }
+  // HealthCheckResponse { status (field 1, enum) }: tag 0x08, then value.
+  if (bytes.size() == 2 && bytes[0] == 0x08) return bytes[1];
+  return -1;
 }
 
 }  // namespace kinetri::testing

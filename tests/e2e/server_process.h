@@ -24,6 +24,8 @@ class ServerProcess {
     return "127.0.0.1:" + std::to_string(grpc_port_);
   }
   int metrics_port() const { return metrics_port_; }
+  // The plaintext health-only port (--health_listen), 0 if none.
+  int health_port() const { return health_port_; }
   pid_t pid() const { return pid_; }
   // CPU seconds (user + system) the server has used so far.
   double CpuSeconds() const;
@@ -36,10 +38,15 @@ class ServerProcess {
   pid_t pid_ = -1;
   int grpc_port_ = 0;
   int metrics_port_ = 0;
+  int health_port_ = 0;
 };
 
 // n uniform random points in the unit square, packed x, y.
 std::vector<double> UniformXY(size_t n, uint64_t seed);
+
+// grpc.health.v1.Health/Check for the whole server on a plaintext target:
+// 1 SERVING, 2 NOT_SERVING, -1 if the call failed.
+int HealthStatus(const std::string& target);
 
 // GET http://127.0.0.1:port/path; returns the body ("" on failure).
 std::string HttpGet(int port, const std::string& path);

@@ -209,6 +209,26 @@ TEST_F(SecurityTest, TokenFileReloads) {
   EXPECT_TRUE(gamma->ListSessions().ok());
 }
 
+// Probes that cannot speak TLS use the plaintext health-only port; the
+// Kinetri service is not served there.
+TEST_F(SecurityTest, PlaintextHealthPortForProbes) {
+  WriteFile(File("tokens"), std::string(kTokenA) + " alpha\n");
+  server_ = std::make_unique<testing::ServerProcess>(
+      KINETRI_SERVER_BINARY,
+      std::vector<std::string>{"--tls_cert=" + File("server.pem"),
+                               "--tls_key=" + File("server.key"),
+                               "--auth_tokens_file=" + File("tokens"),
+                               "--health_listen=127.0.0.1:0"});
+  ASSERT_TRUE(server_->ok());
+  ASSERT_GT(server_->health_port(), 0);
+  const std::string health =
+      "127.0.0.1:" + std::to_string(server_->health_port());
+  EXPECT_EQ(testing::HealthStatus(health), 1);
+  Client plain(health, 1000, ClientSecurity{.token = kTokenA});
+  EXPECT_EQ(plain.ListSessions().status().code(),
+            absl::StatusCode::kUnimplemented);
+}
+
 // Protected mode: a non-loopback address without TLS and tokens is refused
 // (exit status 2) unless --insecure says so.
 TEST(SecurityProtectedMode, RefusesPublicPlaintextUnlessInsecure) {
