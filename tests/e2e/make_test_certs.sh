@@ -5,6 +5,8 @@
 #   client.pem/client.key    client certificate by ca (mutual TLS)
 #   other_ca.pem             an unrelated CA
 #   other_client.pem/.key    a client certificate by the unrelated CA
+#   other_server.pem/.key    a server certificate by the unrelated CA
+#                            (certificate rotation)
 set -euo pipefail
 dir=${1:?usage: make_test_certs.sh DIR}
 mkdir -p "$dir"
@@ -28,3 +30,5 @@ leaf server ca "subjectAltName=IP:127.0.0.1,DNS:localhost
 extendedKeyUsage=serverAuth"
 leaf client ca "extendedKeyUsage=clientAuth"
 leaf other_client other_ca "extendedKeyUsage=clientAuth"
+leaf other_server other_ca "subjectAltName=IP:127.0.0.1,DNS:localhost
+extendedKeyUsage=serverAuth"

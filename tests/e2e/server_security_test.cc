@@ -209,6 +209,45 @@ TEST_F(SecurityTest, TokenFileReloads) {
   EXPECT_TRUE(gamma->ListSessions().ok());
 }
 
+// Certificates rotate without a restart: the server picks up new files
+// (checked every --tls_reload_seconds) and keeps its sessions.
+TEST_F(SecurityTest, CertificateRotationKeepsSessions) {
+  // Its own copies of the pair, replaced below.
+  std::system(("cp " + File("server.pem") + " " + File("rot.pem") + " && cp " +
+               File("server.key") + " " + File("rot.key"))
+                  .c_str());
+  WriteFile(File("tokens"), std::string(kTokenA) + " alpha\n");
+  server_ = std::make_unique<testing::ServerProcess>(
+      KINETRI_SERVER_BINARY,
+      std::vector<std::string>{"--tls_cert=" + File("rot.pem"),
+                               "--tls_key=" + File("rot.key"),
+                               "--auth_tokens_file=" + File("tokens"),
+                               "--tls_reload_seconds=1"});
+  ASSERT_TRUE(server_->ok());
+  ASSERT_TRUE(Connect(Secure(kTokenA))
+                  ->CreateSession(testing::UniformXY(100, 7),
+                                  v1::SessionOptions(), "kept")
+                  .ok());
+  // Key first, then certificate, each by rename (as a secret update does).
+  std::system(("cp " + File("other_server.key") + " " + File("rot.key.new") +
+               " && cp " + File("other_server.pem") + " " +
+               File("rot.pem.new") + " && mv " + File("rot.key.new") + " " +
+               File("rot.key") + " && mv " + File("rot.pem.new") + " " +
+               File("rot.pem"))
+                  .c_str());
+  ClientSecurity rotated = Secure(kTokenA);
+  rotated.ca_file = File("other_ca.pem");
+  bool switched = false;
+  for (int i = 0; i < 100 && !switched; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    switched = Connect(rotated)->GetSession("sessions/kept").ok();
+  }
+  EXPECT_TRUE(switched) << "new certificate not served within 10 s";
+  // Clients trusting only the old CA are refused now.
+  EXPECT_EQ(Connect(Secure(kTokenA))->ListSessions().status().code(),
+            absl::StatusCode::kUnavailable);
+}
+
 // Probes that cannot speak TLS use the plaintext health-only port; the
 // Kinetri service is not served there.
 TEST_F(SecurityTest, PlaintextHealthPortForProbes) {
