@@ -41,6 +41,13 @@ Metrics::Metrics() : registry_(std::make_shared<prometheus::Registry>()) {
                  .Help("Points held by all sessions")
                  .Register(*registry_)
                  .Add({});
+  restore_ = &BuildGauge()
+                  .Name("kinetri_restore")
+                  .Help("Last start's restore from --data_dir: sessions "
+                        "restored, sessions unavailable (corrupt snapshot), "
+                        "journal bytes cut (corrupt or truncated tail), "
+                        "seconds")
+                  .Register(*registry_);
   rpc_started_ = &BuildCounter()
                       .Name("grpc_server_started_total")
                       .Help("RPCs started on the server")
@@ -86,6 +93,14 @@ void Metrics::ObserveQuery(const std::string& op, const std::string& backend,
                            double seconds) {
   query_seconds_->Add({{"op", op}, {"backend", backend}}, LatencyBuckets())
       .Observe(seconds);
+}
+
+void Metrics::SetRestore(double sessions, double unavailable, double cut_bytes,
+                         double seconds) {
+  restore_->Add({{"what", "sessions"}}).Set(sessions);
+  restore_->Add({{"what", "unavailable"}}).Set(unavailable);
+  restore_->Add({{"what", "journal_bytes_cut"}}).Set(cut_bytes);
+  restore_->Add({{"what", "seconds"}}).Set(seconds);
 }
 
 void Metrics::SetSessions(double sessions, double points) {

@@ -28,6 +28,9 @@ class Metrics {
   void ObserveQuery(const std::string& op, const std::string& backend,
                     double seconds);
   void SetSessions(double sessions, double points);
+  // What the start-up restore from --data_dir found.
+  void SetRestore(double sessions, double unavailable, double cut_bytes,
+                  double seconds);
 
   // Per-RPC accounting in the grpc_server_* shape.
   void RpcStarted(const std::string& method, const std::string& type);
@@ -46,6 +49,7 @@ class Metrics {
   prometheus::Family<prometheus::Counter>* reinserted_;
   prometheus::Gauge* sessions_;
   prometheus::Gauge* points_;
+  prometheus::Family<prometheus::Gauge>* restore_;
   prometheus::Family<prometheus::Counter>* rpc_started_;
   prometheus::Family<prometheus::Counter>* rpc_handled_;
   prometheus::Family<prometheus::Histogram>* rpc_seconds_;

@@ -3,6 +3,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cstdio>
 
 #include "absl/container/flat_hash_map.h"
 #include "absl/strings/numbers.h"
@@ -105,6 +106,110 @@ v1::Session Describe(const Session& s) {
 }
 
 }  // namespace
+
+KinetriServiceImpl::RestoreReport KinetriServiceImpl::EnableDurability(
+    SessionStore* store) {
+  const auto t0 = std::chrono::steady_clock::now();
+  store_ = store;
+  RestoreReport report;
+  absl::flat_hash_map<std::string, std::string> broken;
+  std::vector<RestoredSession> sessions = store->LoadAll(&broken);
+  const ServerLimits& limits = registry_->limits();
+  for (RestoredSession& r : sessions) {
+    const std::string key = SessionStore::Key(r.meta.tenant, r.meta.id);
+    report.journal_bytes_cut += r.cut_bytes;
+    if (r.cut_bytes > 0) {
+      std::fprintf(stderr,
+                   "kinetri-server: %s: cut %llu bytes of corrupt or "
+                   "truncated journal tail\n",
+                   key.c_str(), static_cast<unsigned long long>(r.cut_bytes));
+    }
+    core::TriangulationOptions opt;
+    opt.num_threads = static_cast<int>(r.meta.threads);
+    std::string backend = "cpu";
+    if (r.meta.backend != "cpu" && limits.has_device) {
+      opt.executor = core::Executor::kDevice;
+      opt.device_backend = limits.device;
+      backend = core::device::DeviceBackendName(limits.device);
+    }
+    const uint64_t n = r.positions.size();
+    auto memory = budget_->Reserve(n * MemoryBudget::kSessionBytesPerPoint,
+                                   absl::StrCat("restoring ", key));
+    if (!memory.ok()) {
+      broken[key] = std::string(memory.status().message());
+      continue;
+    }
+    auto tri = core::Triangulation::Create(r.positions, opt);
+    if (!tri.ok()) {
+      broken[key] = absl::StrCat("cannot restore: ", tri.status().message());
+      continue;
+    }
+    uint64_t step = r.meta.step;
+    for (const RestoredSession::Step& s : r.steps) {
+      if (s.step != step + 1) continue;  // covered by the snapshot
+      // A journaled step that fails again failed the first time too.
+      if (tri->ApplyDisplacements(s.batch).ok()) {
+        step = s.step;
+        ++report.steps_replayed;
+      }
+    }
+    auto session = std::make_shared<Session>(
+        r.meta.id, std::move(*tri), backend, r.meta.max_query_results,
+        r.meta.threads, std::move(r.meta.client_ids), std::move(*memory),
+        budget_);
+    session->RestoreStep(step, r.meta.create_time);
+    Tenant tenant;
+    tenant.name = r.meta.tenant;
+    session->set_tenant(tenant.name);
+    auto journal = store->Reopen(session->Meta(step), *session->Read().tri);
+    if (!journal.ok()) {
+      broken[key] = absl::StrCat("cannot reopen its files: ",
+                                 journal.status().message());
+      continue;
+    }
+    session->AttachJournal(*std::move(journal));
+    auto added = registry_->Add(session, tenant);
+    if (!added.ok()) {
+      session->journal()->Close();
+      broken[key] = std::string(added.status().message());
+      continue;
+    }
+    ++report.sessions;
+  }
+  report.unavailable = broken.size();
+  for (const auto& [key, why] : broken) {
+    std::fprintf(stderr, "kinetri-server: session %s unavailable: %s\n",
+                 key.c_str(), why.c_str());
+  }
+  {
+    absl::MutexLock lock(&broken_mu_);
+    broken_ = std::move(broken);
+  }
+  report.seconds = std::chrono::duration<double>(
+                       std::chrono::steady_clock::now() - t0)
+                       .count();
+  metrics_->SetRestore(static_cast<double>(report.sessions),
+                       static_cast<double>(report.unavailable),
+                       static_cast<double>(report.journal_bytes_cut),
+                       report.seconds);
+  UpdateGauges();
+  return report;
+}
+
+absl::StatusOr<std::shared_ptr<Session>> KinetriServiceImpl::Lookup(
+    const std::string& name, const std::string& tenant) const {
+  auto s = registry_->Get(name, tenant);
+  if (s.ok() || store_ == nullptr ||
+      s.status().code() != absl::StatusCode::kNotFound) {
+    return s;
+  }
+  auto id = ParseSessionName(name, "name");
+  if (!id.ok()) return s;
+  absl::MutexLock lock(&broken_mu_);
+  auto it = broken_.find(SessionStore::Key(tenant, *id));
+  if (it == broken_.end()) return s;
+  return absl::DataLossError(absl::StrCat(name, ": ", it->second));
+}
 
 absl::StatusOr<Tenant> KinetriServiceImpl::Caller(
     const grpc::ServerContext& ctx) const {
@@ -272,8 +377,35 @@ grpc::Status KinetriServiceImpl::CreateSession(
       on_device ? core::device::DeviceBackendName(limits.device) : "cpu",
                                            max_results, threads, std::move(ids),
                                            std::move(*memory), budget_);
+  if (store_ != nullptr) {
+    // Durable: the first snapshot is on disk before the session exists.
+    if (registry_->Get(session->name(), tenant->name).ok()) {
+      return rpc.Done(grpc::Status(
+          grpc::StatusCode::ALREADY_EXISTS,
+          absl::StrCat("session_id: ", session->name(), " already exists")));
+    }
+    session->set_tenant(tenant->name);
+    const Session::Snapshot snap = session->Read();
+    auto journal = store_->Create(session->Meta(0), *snap.tri);
+    if (!journal.ok()) {
+      return rpc.Done(ToGrpc(absl::Status(
+          journal.status().code(),
+          absl::StrCat("session not created: cannot persist it: ",
+                       journal.status().message()))));
+    }
+    session->AttachJournal(*std::move(journal));
+    absl::MutexLock lock(&broken_mu_);
+    broken_.erase(SessionStore::Key(tenant->name, session->id()));
+  }
   auto added = registry_->Add(session, *tenant);
-  if (!added.ok()) return rpc.Done(ToGrpc(added.status()));
+  if (!added.ok()) {
+    if (store_ != nullptr && added.status().code() !=
+                                 absl::StatusCode::kAlreadyExists) {
+      session->journal()->Close();
+      store_->Remove(tenant->name, session->id()).IgnoreError();
+    }
+    return rpc.Done(ToGrpc(added.status()));
+  }
   *response = Describe(**added);
   UpdateGauges();
   return rpc.Done(grpc::Status::OK);
@@ -285,7 +417,7 @@ grpc::Status KinetriServiceImpl::GetSession(grpc::ServerContext* ctx,
   RpcScope rpc(metrics_, "GetSession", "unary");
   auto tenant = Caller(*ctx);
   if (!tenant.ok()) return rpc.Done(ToGrpc(tenant.status()));
-  auto s = registry_->Get(req->name(), tenant->name);
+  auto s = Lookup(req->name(), tenant->name);
   if (!s.ok()) return rpc.Done(ToGrpc(s.status()));
   *response = Describe(**s);
   return rpc.Done(grpc::Status::OK);
@@ -325,7 +457,23 @@ grpc::Status KinetriServiceImpl::DeleteSession(
   RpcScope rpc(metrics_, "DeleteSession", "unary");
   auto tenant = Caller(*ctx);
   if (!tenant.ok()) return rpc.Done(ToGrpc(tenant.status()));
+  auto session = Lookup(req->name(), tenant->name);
+  if (!session.ok() && store_ != nullptr &&
+      session.status().code() == absl::StatusCode::kDataLoss) {
+    // A session whose snapshot is corrupt: deleting drops its files.
+    auto id = ParseSessionName(req->name(), "name");
+    if (!id.ok()) return rpc.Done(ToGrpc(id.status()));
+    {
+      absl::MutexLock lock(&broken_mu_);
+      broken_.erase(SessionStore::Key(tenant->name, *id));
+    }
+    return rpc.Done(ToGrpc(store_->Remove(tenant->name, *id)));
+  }
   const absl::Status st = registry_->Remove(req->name(), tenant->name);
+  if (st.ok() && session.ok() && (*session)->journal() != nullptr) {
+    (*session)->journal()->Close();
+    store_->Remove(tenant->name, (*session)->id()).IgnoreError();
+  }
   UpdateGauges();
   return rpc.Done(ToGrpc(st));
 }
@@ -351,7 +499,7 @@ grpc::Status KinetriServiceImpl::StreamSteps(
             grpc::StatusCode::INVALID_ARGUMENT,
             "session: required on the first message of the stream"));
       }
-      auto s = registry_->Get(req.session(), tenant->name);
+      auto s = Lookup(req.session(), tenant->name);
       if (!s.ok()) return rpc.Done(ToGrpc(s.status()));
       session = *s;
     } else if (!req.session().empty() && req.session() != session->name()) {
@@ -412,7 +560,7 @@ grpc::Status KinetriServiceImpl::Query(
   RpcScope rpc(metrics_, "Query", "server_stream");
   auto tenant = Caller(*ctx);
   if (!tenant.ok()) return rpc.Done(ToGrpc(tenant.status()));
-  auto s = registry_->Get(req->session(), tenant->name);
+  auto s = Lookup(req->session(), tenant->name);
   if (!s.ok()) return rpc.Done(ToGrpc(s.status()));
   Session& session = **s;
   std::string op;
@@ -571,7 +719,7 @@ grpc::Status KinetriServiceImpl::ExportTriangulation(
   RpcScope rpc(metrics_, "ExportTriangulation", "server_stream");
   auto tenant = Caller(*ctx);
   if (!tenant.ok()) return rpc.Done(ToGrpc(tenant.status()));
-  auto s = registry_->Get(req->session(), tenant->name);
+  auto s = Lookup(req->session(), tenant->name);
   if (!s.ok()) return rpc.Done(ToGrpc(s.status()));
   std::vector<core::Vec2> pos;
   std::vector<std::array<uint32_t, 3>> tris;

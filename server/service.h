@@ -3,13 +3,18 @@
 #define KINETRI_SERVER_SERVICE_H_
 
 #include <atomic>
+#include <memory>
 #include <string>
+
+#include "absl/container/flat_hash_map.h"
+#include "absl/synchronization/mutex.h"
 
 #include "kinetri/v1/kinetri.grpc.pb.h"
 #include "server/auth.h"
 #include "server/idle_watchdog.h"
 #include "server/memory_budget.h"
 #include "server/metrics.h"
+#include "server/persistence.h"
 #include "server/session_registry.h"
 
 namespace kinetri::server {
@@ -28,6 +33,17 @@ class KinetriServiceImpl final : public v1::KinetriService::Service {
         watchdog_(watchdog),
         budget_(budget),
         auth_(auth) {}
+
+  // Durable sessions: restores every session in `store` (before the server
+  // starts serving) and persists new sessions and steps there from now on.
+  struct RestoreReport {
+    size_t sessions = 0;
+    size_t unavailable = 0;
+    uint64_t steps_replayed = 0;
+    uint64_t journal_bytes_cut = 0;
+    double seconds = 0.0;
+  };
+  RestoreReport EnableDurability(SessionStore* store);
 
   grpc::Status CreateSession(
       grpc::ServerContext* ctx,
@@ -54,6 +70,9 @@ class KinetriServiceImpl final : public v1::KinetriService::Service {
 
  private:
   void UpdateGauges();
+  // registry_->Get, or DATA_LOSS for a session whose files are corrupt.
+  absl::StatusOr<std::shared_ptr<Session>> Lookup(
+      const std::string& name, const std::string& tenant) const;
   // The caller's tenant; UNAUTHENTICATED without a valid token.
   absl::StatusOr<Tenant> Caller(const grpc::ServerContext& ctx) const;
 
@@ -62,6 +81,11 @@ class KinetriServiceImpl final : public v1::KinetriService::Service {
   IdleWatchdog* watchdog_;
   MemoryBudget* budget_;
   const TokenAuth* auth_;
+  SessionStore* store_ = nullptr;
+  mutable absl::Mutex broken_mu_;
+  // "tenant@id" -> why it cannot be restored.
+  absl::flat_hash_map<std::string, std::string> broken_
+      ABSL_GUARDED_BY(broken_mu_);
 };
 
 }  // namespace kinetri::server

@@ -105,19 +105,61 @@ absl::StatusOr<core::StepReport> Session::ApplyStep(
     target = std::make_shared<core::Triangulation>(source->Clone());
     source.reset();
   }
+  // Durable sessions: the step is journaled before it applies (a step the
+  // journal cannot take is refused and changes nothing).
+  if (journal_ != nullptr) {
+    absl::Status st = journal_->Append(step, batch);
+    if (!st.ok()) {
+      absl::MutexLock lock(&mu_);
+      in_place_ = false;
+      return absl::Status(st.code(),
+                          absl::StrCat("step ", step, " not applied: ",
+                                       st.message()));
+    }
+  }
   absl::StatusOr<core::StepReport> report =
       target->ApplyDisplacements(batch, cancel);
-  absl::MutexLock lock(&mu_);
-  if (in_place_) {
-    in_place_ = false;  // on error ApplyDisplacements changed nothing
-  } else if (report.ok()) {
-    current_ = std::move(target);
+  if (!report.ok() && journal_ != nullptr) {
+    journal_->Abort(step).IgnoreError();  // marks the journal broken
   }
-  if (report.ok()) {
-    step_ = step;
-    update_time_ = absl::Now();
+  {
+    absl::MutexLock lock(&mu_);
+    if (in_place_) {
+      in_place_ = false;  // on error ApplyDisplacements changed nothing
+    } else if (report.ok()) {
+      current_ = target;
+    }
+    if (report.ok()) {
+      step_ = step;
+      update_time_ = absl::Now();
+    }
+  }
+  if (report.ok() && journal_ != nullptr && journal_->CompactionDue()) {
+    // Compaction reads the step just published (immutable for readers);
+    // a failure only postpones it.
+    journal_->Compact(Meta(step), *target).IgnoreError();
   }
   return report;
+}
+
+void Session::RestoreStep(uint64_t step, absl::Time create_time) {
+  absl::MutexLock lock(&mu_);
+  step_ = step;
+  create_time_ = create_time;
+  update_time_ = absl::Now();
+}
+
+SessionMeta Session::Meta(uint64_t step) const {
+  SessionMeta m;
+  m.id = id_;
+  m.tenant = tenant_;
+  m.backend = backend_;
+  m.max_query_results = max_query_results_;
+  m.threads = threads_;
+  m.step = step;
+  m.create_time = create_time_;
+  m.client_ids = client_ids_;
+  return m;
 }
 
 absl::StatusOr<uint32_t> Session::IndexOf(uint64_t client_id,

@@ -16,6 +16,7 @@
 #include "core/triangulation.h"
 #include "server/auth.h"
 #include "server/memory_budget.h"
+#include "server/persistence.h"
 
 namespace kinetri::server {
 
@@ -69,6 +70,16 @@ class Session {
   absl::StatusOr<uint32_t> IndexOf(uint64_t client_id,
                                    const std::string& field) const;
 
+  // Durable sessions (--data_dir): steps are journaled before they apply.
+  void AttachJournal(std::unique_ptr<Journal> journal) {
+    journal_ = std::move(journal);
+  }
+  Journal* journal() const { return journal_.get(); }
+  // Restored sessions start at their last durable step.
+  void RestoreStep(uint64_t step, absl::Time create_time);
+  // What a snapshot of this session at `step` records.
+  SessionMeta Meta(uint64_t step) const;
+
   struct Snapshot {
     std::shared_ptr<const core::Triangulation> tri;
     uint64_t step = 0;
@@ -100,13 +111,14 @@ class Session {
   std::string tenant_;
   const uint64_t max_query_results_;
   const uint32_t threads_;
-  const absl::Time create_time_;
+  absl::Time create_time_;
   const uint64_t point_count_;
   const std::vector<uint64_t> client_ids_;
   absl::flat_hash_map<uint64_t, uint32_t> index_of_;
 
   MemoryBudget::Reservation memory_;
   MemoryBudget* const budget_;
+  std::unique_ptr<Journal> journal_;
   absl::Mutex write_mu_;  // one step at a time
   mutable absl::Mutex mu_;
   std::shared_ptr<core::Triangulation> current_ ABSL_GUARDED_BY(mu_);

@@ -4,6 +4,7 @@
 #include <arpa/inet.h>
 #include <netinet/in.h>
 #include <signal.h>
+#include <sys/resource.h>
 #include <sys/socket.h>
 #include <sys/wait.h>
 #include <unistd.h>
@@ -22,11 +23,17 @@
 namespace kinetri::testing {
 
 ServerProcess::ServerProcess(const std::string& binary,
-                             const std::vector<std::string>& flags) {
+                             const std::vector<std::string>& flags,
+                             uint64_t max_file_bytes) {
   int out[2];
   if (pipe(out) != 0) return;
   pid_ = fork();
   if (pid_ == 0) {
+    if (max_file_bytes > 0) {
+      const rlimit limit{max_file_bytes, max_file_bytes};
+      setrlimit(RLIMIT_FSIZE, &limit);
+      signal(SIGXFSZ, SIG_IGN);  // writes fail with EFBIG instead
+    }
     dup2(out[1], STDOUT_FILENO);
     close(out[0]);
     std::vector<std::string> args = {binary, "--listen=127.0.0.1:0",
@@ -73,6 +80,13 @@ int ServerProcess::Stop() {
   waitpid(pid_, &status, 0);
   pid_ = -1;
   return status;
+}
+
+void ServerProcess::Kill() {
+  if (pid_ <= 0) return;
+  kill(pid_, SIGKILL);
+  waitpid(pid_, nullptr, 0);
+  pid_ = -1;
 }
 
 void ServerProcess::Signal(int sig) {

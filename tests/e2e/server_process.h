@@ -15,8 +15,11 @@ class ServerProcess {
  public:
   // Runs `binary` with --listen=127.0.0.1:0 --metrics_listen=127.0.0.1:0 and
   // the extra flags; waits until it prints its ports.
+  // max_file_bytes > 0: the server may write no file larger than that
+  // (RLIMIT_FSIZE; writes beyond fail with EFBIG, as on a full disk).
   explicit ServerProcess(const std::string& binary,
-                         const std::vector<std::string>& flags = {});
+                         const std::vector<std::string>& flags = {},
+                         uint64_t max_file_bytes = 0);
   ~ServerProcess();  // SIGTERM, then wait
 
   bool ok() const { return grpc_port_ > 0; }
@@ -33,6 +36,8 @@ class ServerProcess {
   int Stop();
   // Sends a signal without waiting.
   void Signal(int sig);
+  // SIGKILL, then wait (a crash: nothing is flushed or drained).
+  void Kill();
 
  private:
   pid_t pid_ = -1;
