@@ -66,7 +66,8 @@ class DeployFilesTest(unittest.TestCase):
             for flag in ("--tls_cert=/etc/kinetri/tls/tls.crt",
                          "--tls_key=/etc/kinetri/tls/tls.key",
                          "--auth_tokens_file=/etc/kinetri/auth/tokens",
-                         "--health_listen=0.0.0.0:8081"):
+                         "--health_listen=0.0.0.0:8081",
+                         "--data_dir=/var/lib/kinetri"):
                 self.assertIn(flag, text, name)
             self.assertRegex(text, r"(?m)^USER 10001:10001$")
         for path in (DEPLOY / "k8s" / "kinetri.yaml",
@@ -85,6 +86,11 @@ class DeployFilesTest(unittest.TestCase):
             self.assertEqual(secrets[mounts["/etc/kinetri/tls"]], "kinetri-tls")
             self.assertEqual(secrets[mounts["/etc/kinetri/auth"]],
                              "kinetri-tokens")
+            # Sessions persist on the replica's own volume.
+            sts = next(d for d in docs if d["kind"] == "StatefulSet")
+            claims = {t["metadata"]["name"]
+                      for t in sts["spec"]["volumeClaimTemplates"]}
+            self.assertIn(mounts["/var/lib/kinetri"], claims)
         compose = yaml.safe_load((DEPLOY / "compose.yaml").read_text())
         k = compose["services"]["kinetri"]
         self.assertTrue(k["read_only"])
