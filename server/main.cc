@@ -60,6 +60,9 @@ ABSL_FLAG(std::string, health_listen, "",
 ABSL_FLAG(bool, insecure, false,
           "allow listening on a non-loopback address without TLS and tokens "
           "(protected mode refuses to start otherwise)");
+ABSL_FLAG(uint64_t, session_idle_ttl_seconds, 0,
+          "delete sessions no call has touched for this long, unless they "
+          "set their own SessionOptions.idle_ttl_seconds (0: never)");
 ABSL_FLAG(std::string, data_dir, "",
           "keep sessions on disk here (a snapshot + journal per session) and "
           "restore them at start; empty: sessions live in memory only");
@@ -122,6 +125,9 @@ int main(int argc, char** argv) {
   limits.max_query_results = absl::GetFlag(FLAGS_max_query_results);
   limits.default_threads = absl::GetFlag(FLAGS_threads);
   limits.max_threads = absl::GetFlag(FLAGS_max_threads);
+  limits.default_idle_ttl_seconds =
+      std::min<uint64_t>(absl::GetFlag(FLAGS_session_idle_ttl_seconds),
+                         uint64_t{100} * 365 * 24 * 3600);
   if (limits.default_threads < 0 || limits.max_threads < 1 ||
       limits.max_threads > 4096 ||
       static_cast<uint32_t>(limits.default_threads) > limits.max_threads) {
@@ -358,8 +364,10 @@ int main(int argc, char** argv) {
     std::this_thread::sleep_for(std::chrono::milliseconds(50));
     // Tokens: re-read on SIGHUP and when the file changes (checked every
     // second); a broken file keeps the previous tokens.
+    const bool second = ++ticks % 20 == 0;
+    if (second) service.ExpireIdleSessions();
     const bool hangup = g_reload.exchange(false);
-    if (auth && (hangup || ++ticks % 20 == 0)) {
+    if (auth && (hangup || second)) {
       const absl::Status st =
           hangup ? auth->Reload() : auth->ReloadIfChanged();
       if (!st.ok()) {

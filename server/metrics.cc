@@ -41,6 +41,11 @@ Metrics::Metrics() : registry_(std::make_shared<prometheus::Registry>()) {
                  .Help("Points held by all sessions")
                  .Register(*registry_)
                  .Add({});
+  expired_ = &BuildCounter()
+                  .Name("kinetri_sessions_expired_total")
+                  .Help("Sessions deleted by their idle TTL")
+                  .Register(*registry_)
+                  .Add({});
   restore_ = &BuildGauge()
                   .Name("kinetri_restore")
                   .Help("Last start's restore from --data_dir: sessions "
@@ -102,6 +107,8 @@ void Metrics::SetRestore(double sessions, double unavailable, double cut_bytes,
   restore_->Add({{"what", "journal_bytes_cut"}}).Set(cut_bytes);
   restore_->Add({{"what", "seconds"}}).Set(seconds);
 }
+
+void Metrics::SessionsExpired(double count) { expired_->Increment(count); }
 
 void Metrics::SetSessions(double sessions, double points) {
   sessions_->Set(sessions);

@@ -28,6 +28,7 @@ class Metrics {
   void ObserveQuery(const std::string& op, const std::string& backend,
                     double seconds);
   void SetSessions(double sessions, double points);
+  void SessionsExpired(double count);
   // What the start-up restore from --data_dir found.
   void SetRestore(double sessions, double unavailable, double cut_bytes,
                   double seconds);
@@ -49,6 +50,7 @@ class Metrics {
   prometheus::Family<prometheus::Counter>* reinserted_;
   prometheus::Gauge* sessions_;
   prometheus::Gauge* points_;
+  prometheus::Counter* expired_;
   prometheus::Family<prometheus::Gauge>* restore_;
   prometheus::Family<prometheus::Counter>* rpc_started_;
   prometheus::Family<prometheus::Counter>* rpc_handled_;

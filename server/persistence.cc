@@ -195,6 +195,7 @@ absl::StatusOr<uint64_t> WriteSnapshot(const std::string& dir,
   PutString(&p, meta.backend);
   Put<uint64_t>(&p, meta.max_query_results);
   Put<uint32_t>(&p, meta.threads);
+  Put<uint64_t>(&p, meta.idle_ttl_seconds);
   Put<uint64_t>(&p, meta.step);
   Put<int64_t>(&p, absl::ToUnixNanos(meta.create_time));
   Put<uint64_t>(&p, pos.size());
@@ -452,7 +453,8 @@ std::vector<RestoredSession> SessionStore::LoadAll(
       ok = r.Get(&version) && version == kSnapshotVersion &&
            r.GetString(&s.meta.id) && r.GetString(&s.meta.tenant) &&
            r.GetString(&s.meta.backend) && r.Get(&s.meta.max_query_results) &&
-           r.Get(&s.meta.threads) && r.Get(&s.meta.step) && r.Get(&created) &&
+           r.Get(&s.meta.threads) && r.Get(&s.meta.idle_ttl_seconds) &&
+           r.Get(&s.meta.step) && r.Get(&created) &&
            r.Get(&n) && r.Has(n, 16);
       if (ok) {
         s.meta.create_time = absl::FromUnixNanos(created);

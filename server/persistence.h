@@ -47,6 +47,7 @@ struct SessionMeta {
   std::string backend;
   uint64_t max_query_results = 0;
   uint32_t threads = 0;
+  uint64_t idle_ttl_seconds = 0;
   uint64_t step = 0;
   absl::Time create_time;
   std::vector<uint64_t> client_ids;  // empty: sequential ids

@@ -95,6 +95,10 @@ v1::Session Describe(const Session& s) {
   out.mutable_options()->set_backend(s.backend() == "cpu" ? v1::BACKEND_CPU
                                                           : v1::BACKEND_CUDA);
   out.set_device_bytes(snap.tri->device_bytes());
+  out.mutable_options()->set_idle_ttl_seconds(s.idle_ttl_seconds());
+  if (s.idle_ttl_seconds() > 0) {
+    *out.mutable_expire_time() = ToTimestamp(s.ExpireTime());
+  }
   out.mutable_options()->set_threads(s.threads());
   out.mutable_options()->set_point_id_policy(
       s.has_client_ids() ? v1::POINT_ID_POLICY_CLIENT
@@ -158,6 +162,7 @@ KinetriServiceImpl::RestoreReport KinetriServiceImpl::EnableDurability(
         r.meta.threads, std::move(r.meta.client_ids), std::move(*memory),
         budget_);
     session->RestoreStep(step, r.meta.create_time);
+    session->set_idle_ttl(r.meta.idle_ttl_seconds);  // the clock restarts
     Tenant tenant;
     tenant.name = r.meta.tenant;
     session->set_tenant(tenant.name);
@@ -196,9 +201,28 @@ KinetriServiceImpl::RestoreReport KinetriServiceImpl::EnableDurability(
   return report;
 }
 
+size_t KinetriServiceImpl::ExpireIdleSessions() {
+  const absl::Time now = absl::Now();
+  size_t expired = 0;
+  for (const std::shared_ptr<Session>& s : registry_->All()) {
+    if (s->ExpireTime() > now || !registry_->RemoveSession(s)) continue;
+    if (s->journal() != nullptr) {
+      s->journal()->Close();
+      store_->Remove(s->tenant(), s->id()).IgnoreError();
+    }
+    ++expired;
+  }
+  if (expired > 0) {
+    metrics_->SessionsExpired(static_cast<double>(expired));
+    UpdateGauges();
+  }
+  return expired;
+}
+
 absl::StatusOr<std::shared_ptr<Session>> KinetriServiceImpl::Lookup(
     const std::string& name, const std::string& tenant) const {
   auto s = registry_->Get(name, tenant);
+  if (s.ok()) (*s)->Touch();
   if (s.ok() || store_ == nullptr ||
       s.status().code() != absl::StatusCode::kNotFound) {
     return s;
@@ -372,11 +396,22 @@ grpc::Status KinetriServiceImpl::CreateSession(
           ? std::min(header.options().max_query_results(),
                      registry_->limits().max_query_results)
           : registry_->limits().max_query_results;
+  constexpr uint64_t kMaxTtl = uint64_t{100} * 365 * 24 * 3600;
+  if (header.options().idle_ttl_seconds() > kMaxTtl) {
+    return rpc.Done(grpc::Status(
+        grpc::StatusCode::INVALID_ARGUMENT,
+        absl::StrCat("options.idle_ttl_seconds: ",
+                     header.options().idle_ttl_seconds(),
+                     " exceeds 100 years (0: the server's default)")));
+  }
   auto session = std::make_shared<Session>(
       id, std::move(*tri),
       on_device ? core::device::DeviceBackendName(limits.device) : "cpu",
                                            max_results, threads, std::move(ids),
                                            std::move(*memory), budget_);
+  session->set_idle_ttl(header.options().idle_ttl_seconds() > 0
+                            ? header.options().idle_ttl_seconds()
+                            : limits.default_idle_ttl_seconds);
   if (store_ != nullptr) {
     // Durable: the first snapshot is on disk before the session exists.
     if (registry_->Get(session->name(), tenant->name).ok()) {
@@ -530,6 +565,7 @@ grpc::Status KinetriServiceImpl::StreamSteps(
     const core::CancelToken cancel([ctx] { return ctx->IsCancelled(); },
                                    ToSteadyDeadline(ctx->deadline()));
     auto report = session->ApplyStep(step, *batch, &cancel);
+    session->Touch();
     if (!report.ok()) return rpc.Done(ToGrpc(report.status()));
     metrics_->ObserveStep(session->backend(), *report);
     resp.set_step(step);

@@ -44,6 +44,9 @@ class KinetriServiceImpl final : public v1::KinetriService::Service {
     double seconds = 0.0;
   };
   RestoreReport EnableDurability(SessionStore* store);
+  // Deletes the sessions whose idle TTL has passed (files included);
+  // returns how many. The server calls it every second.
+  size_t ExpireIdleSessions();
 
   grpc::Status CreateSession(
       grpc::ServerContext* ctx,

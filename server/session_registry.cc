@@ -156,6 +156,7 @@ SessionMeta Session::Meta(uint64_t step) const {
   m.backend = backend_;
   m.max_query_results = max_query_results_;
   m.threads = threads_;
+  m.idle_ttl_seconds = idle_ttl_seconds_;
   m.step = step;
   m.create_time = create_time_;
   m.client_ids = client_ids_;
@@ -309,6 +310,22 @@ std::vector<std::shared_ptr<Session>> SessionRegistry::List(
     out.push_back(it->second);
   }
   return out;
+}
+
+std::vector<std::shared_ptr<Session>> SessionRegistry::All() const {
+  absl::MutexLock lock(&mu_);
+  std::vector<std::shared_ptr<Session>> out;
+  out.reserve(sessions_.size());
+  for (const auto& [key, s] : sessions_) out.push_back(s);
+  return out;
+}
+
+bool SessionRegistry::RemoveSession(const std::shared_ptr<Session>& s) {
+  absl::MutexLock lock(&mu_);
+  auto it = sessions_.find(Key(s->tenant(), s->id()));
+  if (it == sessions_.end() || it->second != s) return false;
+  sessions_.erase(it);
+  return true;
 }
 
 std::string SessionRegistry::NewId() const {

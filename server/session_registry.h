@@ -2,6 +2,7 @@
 #ifndef KINETRI_SERVER_SESSION_REGISTRY_H_
 #define KINETRI_SERVER_SESSION_REGISTRY_H_
 
+#include <atomic>
 #include <cstdint>
 #include <map>
 #include <memory>
@@ -27,6 +28,8 @@ struct ServerLimits {
   int default_threads = 0;
   // Most worker threads a session may ask for (SessionOptions.threads).
   uint32_t max_threads = 256;
+  // Idle expiry of sessions that do not set their own (0: never).
+  uint64_t default_idle_ttl_seconds = 0;
   // The device executor sessions with BACKEND_AUTO / BACKEND_CUDA get
   // (--device); none: every session runs on the CPU.
   bool has_device = false;
@@ -69,6 +72,17 @@ class Session {
   // NOT_FOUND naming `field` when the id is unknown.
   absl::StatusOr<uint32_t> IndexOf(uint64_t client_id,
                                    const std::string& field) const;
+
+  // Idle expiry (0: never). Touch() marks an access.
+  void set_idle_ttl(uint64_t seconds) { idle_ttl_seconds_ = seconds; }
+  uint64_t idle_ttl_seconds() const { return idle_ttl_seconds_; }
+  void Touch() { last_access_ns_ = absl::GetCurrentTimeNanos(); }
+  // absl::InfiniteFuture() without a TTL.
+  absl::Time ExpireTime() const {
+    if (idle_ttl_seconds_ == 0) return absl::InfiniteFuture();
+    return absl::FromUnixNanos(last_access_ns_.load()) +
+           absl::Seconds(static_cast<int64_t>(idle_ttl_seconds_));
+  }
 
   // Durable sessions (--data_dir): steps are journaled before they apply.
   void AttachJournal(std::unique_ptr<Journal> journal) {
@@ -119,6 +133,8 @@ class Session {
   MemoryBudget::Reservation memory_;
   MemoryBudget* const budget_;
   std::unique_ptr<Journal> journal_;
+  uint64_t idle_ttl_seconds_ = 0;
+  std::atomic<int64_t> last_access_ns_{absl::GetCurrentTimeNanos()};
   absl::Mutex write_mu_;  // one step at a time
   mutable absl::Mutex mu_;
   std::shared_ptr<core::Triangulation> current_ ABSL_GUARDED_BY(mu_);
@@ -151,6 +167,10 @@ class SessionRegistry {
       const std::string& tenant = "") const;
   // A fresh session id: "s-" and 128 random bits in hex (unguessable).
   std::string NewId() const;
+  // Every session of every tenant.
+  std::vector<std::shared_ptr<Session>> All() const;
+  // Removes exactly this session (if it is still registered).
+  bool RemoveSession(const std::shared_ptr<Session>& s);
   size_t size() const;
   uint64_t total_points() const;
 

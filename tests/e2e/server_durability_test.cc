@@ -310,5 +310,43 @@ TEST_F(DurabilityTest, FullDiskRefusesTheStepAndKeepsTheSession) {
   ExpectSession(*client_, "sessions/full", acked, xy, "after restart");
 }
 
+// Idle expiry: a session no call touches for its TTL is deleted (files
+// too); touching it keeps it; GetSession shows when it expires; sessions
+// without a TTL stay; the count is a metric.
+TEST_F(DurabilityTest, IdleSessionsExpire) {
+  Start("always");
+  v1::SessionOptions ttl;
+  ttl.set_idle_ttl_seconds(2);
+  ASSERT_TRUE(
+      client_->CreateSession(testing::UniformXY(200, 8), ttl, "short").ok());
+  ASSERT_TRUE(client_
+                  ->CreateSession(testing::UniformXY(200, 9),
+                                  v1::SessionOptions(), "forever")
+                  .ok());
+  auto s = client_->GetSession("sessions/short");
+  ASSERT_TRUE(s.ok());
+  EXPECT_EQ(s->options().idle_ttl_seconds(), 2u);
+  ASSERT_TRUE(s->has_expire_time());
+  const int64_t now_s = absl::ToUnixSeconds(absl::Now());
+  EXPECT_NEAR(static_cast<double>(s->expire_time().seconds()),
+              static_cast<double>(now_s + 2), 1.5);
+  EXPECT_FALSE(client_->GetSession("sessions/forever")->has_expire_time());
+  // Touched every 0.5 s for 4 s: still there.
+  for (int i = 0; i < 8; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(500));
+    ASSERT_TRUE(client_->NearestOfAll("sessions/short").ok()) << i;
+  }
+  // Left alone: gone within TTL + the once-a-second sweep.
+  std::this_thread::sleep_for(std::chrono::milliseconds(3500));
+  EXPECT_EQ(client_->GetSession("sessions/short").status().code(),
+            absl::StatusCode::kNotFound);
+  EXPECT_TRUE(client_->GetSession("sessions/forever").ok());
+  EXPECT_FALSE(fs::exists(dir_ + "/sessions/@short"));
+  EXPECT_TRUE(fs::exists(dir_ + "/sessions/@forever"));
+  EXPECT_NE(testing::HttpGet(server_->metrics_port(), "/metrics")
+                .find("kinetri_sessions_expired_total 1"),
+            std::string::npos);
+}
+
 }  // namespace
 }  // namespace kinetri
