@@ -59,7 +59,7 @@ absl::StatusOr<std::vector<TokenAuth::Entry>> TokenAuth::Parse(
     auto bad = [&](const std::string& why) {
       return absl::InvalidArgumentError(absl::StrCat(
           "--auth_tokens_file ", path, " line ", number, ": ", why,
-          " (expected: TOKEN TENANT [sessions=N] [points=N])"));
+          " (expected: TOKEN TENANT [sessions=N] [points=N] [memory_mb=N])"));
     };
     if (words.size() < 2) return bad("a token needs a tenant");
     if (words[0].size() < 16) {
@@ -79,6 +79,11 @@ absl::StatusOr<std::vector<TokenAuth::Entry>> TokenAuth::Parse(
         }
       } else if (absl::ConsumePrefix(&w, "points=")) {
         if (!absl::SimpleAtoi(w, &e.tenant.max_points)) {
+          return bad(absl::StrCat("bad number in ", words[i]));
+        }
+      } else if (absl::ConsumePrefix(&w, "memory_mb=")) {
+        if (!absl::SimpleAtoi(w, &e.tenant.max_memory_mb) ||
+            e.tenant.max_memory_mb > (uint64_t{1} << 40)) {
           return bad(absl::StrCat("bad number in ", words[i]));
         }
       } else {

@@ -212,7 +212,8 @@ std::string Key(const std::string& tenant, const std::string& id) {
 
 absl::Status SessionRegistry::CheckTenantLocked(uint64_t points,
                                                 const Tenant& tenant) const {
-  if (tenant.max_sessions == 0 && tenant.max_points == 0) {
+  if (tenant.max_sessions == 0 && tenant.max_points == 0 &&
+      tenant.max_memory_mb == 0) {
     return absl::OkStatus();
   }
   uint64_t sessions = 0, total = 0;
@@ -226,6 +227,15 @@ absl::Status SessionRegistry::CheckTenantLocked(uint64_t points,
     return absl::ResourceExhaustedError(
         absl::StrCat("tenant ", tenant.name, " holds its maximum of ",
                      tenant.max_sessions, " sessions; delete one first"));
+  }
+  // Memory by the same per-point estimate the server's budget admits with.
+  const uint64_t bytes =
+      (total + points) * MemoryBudget::kSessionBytesPerPoint;
+  if (tenant.max_memory_mb != 0 && bytes > (tenant.max_memory_mb << 20)) {
+    return absl::ResourceExhaustedError(absl::StrCat(
+        "tenant ", tenant.name, ": ", total, " points held + ", points,
+        " need about ", bytes >> 20, " MiB, over its limit of ",
+        tenant.max_memory_mb, " MiB"));
   }
   if (tenant.max_points != 0 && total + points > tenant.max_points) {
     return absl::ResourceExhaustedError(absl::StrCat(

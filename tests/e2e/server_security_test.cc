@@ -23,6 +23,7 @@ namespace {
 constexpr char kTokenA[] = "alpha-token-0123456789abcdef";
 constexpr char kTokenB[] = "beta-token-0123456789abcdef";
 constexpr char kTokenC[] = "gamma-token-0123456789abcdef";
+constexpr char kTokenD[] = "delta-token-0123456789abcdef";
 
 std::string TempDir() {
   char tmpl[] = "/tmp/kinetri-security-XXXXXX";
@@ -55,7 +56,7 @@ class SecurityTest : public ::testing::Test {
   void StartServer(bool mutual) {
     WriteFile(File("tokens"),
               std::string("# test tokens\n") + kTokenA + " alpha\n" + kTokenB +
-                  " beta sessions=1\n");
+                  " beta sessions=1\n" + kTokenD + " delta memory_mb=1\n");
     std::vector<std::string> flags = {
         "--tls_cert=" + File("server.pem"), "--tls_key=" + File("server.key"),
         "--auth_tokens_file=" + File("tokens"), "--tls_reload_seconds=1"};
@@ -177,6 +178,15 @@ TEST_F(SecurityTest, TenantsSeeOnlyTheirOwnSessions) {
   auto alpha_list = alpha->ListSessions();
   ASSERT_TRUE(alpha_list.ok());
   EXPECT_EQ(alpha_list->size(), 2u);
+  // Delta's memory limit: 1 MiB holds about 3000 points (350 B each).
+  auto delta = Connect(Secure(kTokenD));
+  EXPECT_TRUE(delta->CreateSession(testing::UniformXY(2000, 10),
+                                   v1::SessionOptions())
+                  .ok());
+  auto over = delta->CreateSession(testing::UniformXY(2000, 11),
+                                   v1::SessionOptions());
+  EXPECT_EQ(over.status().code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_NE(over.status().message().find("MiB"), std::string::npos);
   // Beta's own limit: one session.
   EXPECT_EQ(beta->CreateSession(testing::UniformXY(50, 6), v1::SessionOptions())
                 .status()
