@@ -78,10 +78,10 @@ int main(int argc, char** argv) {
         return 1;
       }
       if (mode == "always") {
-        std::printf("%-10s %12.1f  (first snapshot, %.1f MB)\n", "snapshot",
-                    Ms(t0),
-                    std::filesystem::file_size(dir + "/sessions/@bench/snapshot") /
-                        1e6);
+        std::printf(
+            "%-10s %12.1f  (first snapshot, %.1f MB)\n", "snapshot", Ms(t0),
+            std::filesystem::file_size(dir + "/sessions/@bench/snapshot") /
+                1e6);
       }
       session.AttachJournal(*std::move(journal));
     }

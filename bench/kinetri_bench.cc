@@ -278,8 +278,8 @@ int main(int argc, char** argv) {
   const size_t num_queries =
       static_cast<size_t>(std::max(0, absl::GetFlag(FLAGS_query_points)));
   std::set<std::string> engines = {
-      "kinetri",   "kinetri-1t", "kinetri-rounds", "kinetri-device",
-      "cgal-rebuild", "cgal-move", "grid",       "nanoflann"};
+      "kinetri",      "kinetri-1t", "kinetri-rounds", "kinetri-device",
+      "cgal-rebuild", "cgal-move",  "grid",           "nanoflann"};
   if (!absl::GetFlag(FLAGS_engines).empty()) {
     std::set<std::string> want;
     for (auto e : absl::StrSplit(absl::GetFlag(FLAGS_engines), ',')) {
@@ -377,18 +377,18 @@ int main(int argc, char** argv) {
         if (engines.count("kinetri-device")) {
           kc::TriangulationOptions dev;
           dev.executor = kc::Executor::kDevice;
-          dev.device_backend =
-              kc::device::DeviceBackendAvailable(
-                  kc::device::DeviceBackend::kCuda)
-                  ? kc::device::DeviceBackend::kCuda
-                  : kc::device::DeviceBackend::kEmulated;
+          dev.device_backend = kc::device::DeviceBackendAvailable(
+                                   kc::device::DeviceBackend::kCuda)
+                                   ? kc::device::DeviceBackend::kCuda
+                                   : kc::device::DeviceBackend::kEmulated;
           auto td = kc::Triangulation::Create(w.start, dev);
           if (!td.ok()) {
             std::fprintf(stderr, "kinetri-device: %s\n",
                          td.status().ToString().c_str());
             return 1;
           }
-          std::fprintf(stderr, "[bench] kinetri-device runs on the %s backend\n",
+          std::fprintf(stderr,
+                       "[bench] kinetri-device runs on the %s backend\n",
                        kc::device::DeviceBackendName(dev.device_backend));
           tri_device = std::make_unique<kc::Triangulation>(*std::move(td));
         }

@@ -393,9 +393,9 @@ absl::Status Triangulation::AttemptOnDevice(
   if (moved != nullptr) {
     candidates = KineticExecutor::CandidateTriangles(mesh_, *moved);
   }
-  absl::StatusOr<device::DeviceAttempt> a = device_->Attempt(
-      mesh_, to, moved != nullptr ? &candidates : nullptr, seeds,
-      options_.round.rebuild_fraction, cancel);
+  absl::StatusOr<device::DeviceAttempt> a =
+      device_->Attempt(mesh_, to, moved != nullptr ? &candidates : nullptr,
+                       seeds, options_.round.rebuild_fraction, cancel);
   if (!a.ok()) return a.status();
   report->fix_seconds += a->fix_seconds;
   report->legalize_seconds += a->legalize_seconds;
@@ -696,12 +696,12 @@ bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
       return false;
     }
     if (too_tangled_) {
-      *reason = !device_failure_.empty()
-                    ? absl::StrCat("device executor failed: ", device_failure_)
-                    : absl::StrCat("over ",
-                                   options_.round.rebuild_fraction * 100,
-                                   "% of the triangles inverted: rebuilding "
-                                   "is cheaper");
+      *reason =
+          !device_failure_.empty()
+              ? absl::StrCat("device executor failed: ", device_failure_)
+              : absl::StrCat("over ", options_.round.rebuild_fraction * 100,
+                             "% of the triangles inverted: rebuilding "
+                             "is cheaper");
       device_failure_.clear();
       return false;
     }

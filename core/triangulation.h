@@ -213,11 +213,11 @@ class Triangulation {
   // TryStep's attempt on the device executor: *result 1 fixed, 0 stuck
   // (stuck_vertices filled), -1 cancelled, -2 too tangled (rebuild).
   absl::Status AttemptOnDevice(const std::vector<Vec2>& to,
-                             const std::vector<uint32_t>* moved,
-                             const std::vector<uint32_t>* seeds,
-                             const CancelToken* cancel, StepReport* report,
-                             std::vector<uint32_t>* stuck_vertices,
-                             int* result);
+                               const std::vector<uint32_t>* moved,
+                               const std::vector<uint32_t>* seeds,
+                               const CancelToken* cancel, StepReport* report,
+                               std::vector<uint32_t>* stuck_vertices,
+                               int* result);
   // The host changed mesh_ (the device copy must be uploaded again).
   void MeshChangedOnHost();
   // Coincident points whose positions in `next` leave their site: detached

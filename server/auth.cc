@@ -91,8 +91,7 @@ absl::StatusOr<std::vector<TokenAuth::Entry>> TokenAuth::Parse(
       }
     }
     for (const Entry& other : entries) {
-      if (CRYPTO_memcmp(other.hash.data(), e.hash.data(), e.hash.size()) ==
-          0) {
+      if (CRYPTO_memcmp(other.hash.data(), e.hash.data(), e.hash.size()) == 0) {
         return bad("the same token appears twice");
       }
     }
@@ -209,8 +208,7 @@ bool IsLoopbackAddress(const std::string& host_port) {
     if (colon != std::string::npos) host.resize(colon);
   }
   if (absl::StartsWith(host, "unix:")) return true;  // a local socket
-  return host == "localhost" || host == "::1" ||
-         absl::StartsWith(host, "127.");
+  return host == "localhost" || host == "::1" || absl::StartsWith(host, "127.");
 }
 
 std::string RandomHex128() {

@@ -1,10 +1,10 @@
 // Bearer-token authentication and tenants.
 //
 // --auth_tokens_file holds one token per line: `TOKEN TENANT [sessions=N]
-// [points=N] [memory_mb=N]` ('#' starts a comment). The server keeps only SHA-256 hashes
-// of the tokens; a caller's token (metadata `authorization: Bearer TOKEN`)
-// is hashed and compared in constant time with every entry. The file is
-// re-read on SIGHUP and when its modification time changes; a file that
+// [points=N] [memory_mb=N]` ('#' starts a comment). The server keeps only
+// SHA-256 hashes of the tokens; a caller's token (metadata `authorization:
+// Bearer TOKEN`) is hashed and compared in constant time with every entry. The
+// file is re-read on SIGHUP and when its modification time changes; a file that
 // does not parse keeps the previous table (and is reported).
 //
 // Tenants: every session belongs to the tenant of the token that created
@@ -29,9 +29,9 @@
 namespace kinetri::server {
 
 struct Tenant {
-  std::string name;           // [a-z0-9_-]{1,63}; "" when auth is off
-  uint32_t max_sessions = 0;  // 0: the server's limit
-  uint64_t max_points = 0;    // points over all its sessions; 0: no own limit
+  std::string name;            // [a-z0-9_-]{1,63}; "" when auth is off
+  uint32_t max_sessions = 0;   // 0: the server's limit
+  uint64_t max_points = 0;     // points over all its sessions; 0: no own limit
   uint64_t max_memory_mb = 0;  // memory of all its sessions (admission
                                // estimate per point); 0: no own limit
 };

@@ -2,6 +2,9 @@
 #include <grpcpp/ext/proto_server_reflection_plugin.h>
 #include <grpcpp/grpcpp.h>
 #include <grpcpp/health_check_service_interface.h>
+#include <grpcpp/security/server_credentials.h>
+#include <grpcpp/security/tls_certificate_provider.h>
+#include <grpcpp/security/tls_credentials_options.h>
 
 #include <algorithm>
 #include <atomic>
@@ -11,10 +14,6 @@
 #include <memory>
 #include <string>
 #include <thread>
-
-#include <grpcpp/security/server_credentials.h>
-#include <grpcpp/security/tls_certificate_provider.h>
-#include <grpcpp/security/tls_credentials_options.h>
 
 #include "absl/flags/flag.h"
 #include "core/device/device_executor.h"
@@ -143,7 +142,8 @@ int main(int argc, char** argv) {
 #endif
     const std::string device = absl::GetFlag(FLAGS_device);
     if (device == "auto") {
-      limits.has_device = dev::DeviceBackendAvailable(dev::DeviceBackend::kCuda);
+      limits.has_device =
+          dev::DeviceBackendAvailable(dev::DeviceBackend::kCuda);
       limits.device = dev::DeviceBackend::kCuda;
     } else if (device == "cuda" || device == "emulated") {
       limits.device = device == "cuda" ? dev::DeviceBackend::kCuda
@@ -294,8 +294,7 @@ int main(int argc, char** argv) {
     }
     credentials = grpc::experimental::TlsServerCredentials(options);
   }
-  std::printf("kinetri-server: %s%s, %s\n",
-              tls ? "TLS" : "plaintext (no TLS)",
+  std::printf("kinetri-server: %s%s, %s\n", tls ? "TLS" : "plaintext (no TLS)",
               tls && !tls_ca.empty() ? " with client certificates" : "",
               auth ? "bearer tokens required" : "no authentication");
   builder.AddListeningPort(listen, credentials, &port);
@@ -368,8 +367,7 @@ int main(int argc, char** argv) {
     if (second) service.ExpireIdleSessions();
     const bool hangup = g_reload.exchange(false);
     if (auth && (hangup || second)) {
-      const absl::Status st =
-          hangup ? auth->Reload() : auth->ReloadIfChanged();
+      const absl::Status st = hangup ? auth->Reload() : auth->ReloadIfChanged();
       if (!st.ok()) {
         std::fprintf(stderr, "kinetri-server: tokens not reloaded: %s\n",
                      std::string(st.message()).c_str());

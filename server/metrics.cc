@@ -48,10 +48,11 @@ Metrics::Metrics() : registry_(std::make_shared<prometheus::Registry>()) {
                   .Add({});
   restore_ = &BuildGauge()
                   .Name("kinetri_restore")
-                  .Help("Last start's restore from --data_dir: sessions "
-                        "restored, sessions unavailable (corrupt snapshot), "
-                        "journal bytes cut (corrupt or truncated tail), "
-                        "seconds")
+                  .Help(
+                      "Last start's restore from --data_dir: sessions "
+                      "restored, sessions unavailable (corrupt snapshot), "
+                      "journal bytes cut (corrupt or truncated tail), "
+                      "seconds")
                   .Register(*registry_);
   rpc_started_ = &BuildCounter()
                       .Name("grpc_server_started_total")

@@ -108,7 +108,8 @@ absl::Status Errno(const std::string& what) {
   return absl::UnavailableError(msg);
 }
 
-absl::Status WriteAll(int fd, const std::string& data, const std::string& what) {
+absl::Status WriteAll(int fd, const std::string& data,
+                      const std::string& what) {
   size_t done = 0;
   while (done < data.size()) {
     const ssize_t k = ::write(fd, data.data() + done, data.size() - done);
@@ -156,8 +157,7 @@ bool ParseStep(const std::string& payload, RestoredSession::Step* out) {
   Reader r(payload.data(), payload.size());
   uint8_t mode = 0;
   uint64_t nids = 0, nvals = 0;
-  if (!r.Get(&out->step) || !r.Get(&mode) || !r.Get(&nids) ||
-      !r.Has(nids, 4)) {
+  if (!r.Get(&out->step) || !r.Get(&mode) || !r.Get(&nids) || !r.Has(nids, 4)) {
     return false;
   }
   out->batch.mode = mode ? core::DisplacementBatch::Mode::kAbsolute
@@ -368,9 +368,9 @@ std::string SessionStore::SessionDir(const std::string& tenant,
 absl::StatusOr<std::unique_ptr<Journal>> SessionStore::OpenJournal(
     const std::string& dir, uint64_t snapshot_bytes, bool truncate) {
   const std::string path = dir + "/journal";
-  const int fd = ::open(path.c_str(),
-                        O_WRONLY | O_CREAT | O_APPEND | (truncate ? O_TRUNC : 0),
-                        0600);
+  const int fd =
+      ::open(path.c_str(),
+             O_WRONLY | O_CREAT | O_APPEND | (truncate ? O_TRUNC : 0), 0600);
   if (fd < 0) return Errno(absl::StrCat("open ", path));
   struct stat st {};
   ::fstat(fd, &st);
@@ -454,8 +454,7 @@ std::vector<RestoredSession> SessionStore::LoadAll(
            r.GetString(&s.meta.id) && r.GetString(&s.meta.tenant) &&
            r.GetString(&s.meta.backend) && r.Get(&s.meta.max_query_results) &&
            r.Get(&s.meta.threads) && r.Get(&s.meta.idle_ttl_seconds) &&
-           r.Get(&s.meta.step) && r.Get(&created) &&
-           r.Get(&n) && r.Has(n, 16);
+           r.Get(&s.meta.step) && r.Get(&created) && r.Get(&n) && r.Has(n, 16);
       if (ok) {
         s.meta.create_time = absl::FromUnixNanos(created);
         s.positions.resize(n);

@@ -80,8 +80,7 @@ class Journal {
  private:
   friend class SessionStore;
   Journal(SessionStore* store, std::string dir, int fd, uint64_t size,
-          uint64_t snapshot_bytes, FsyncPolicy fsync,
-          uint64_t interval_steps);
+          uint64_t snapshot_bytes, FsyncPolicy fsync, uint64_t interval_steps);
   absl::Status Write(const std::string& record);
 
   SessionStore* const store_;
@@ -146,8 +145,9 @@ class SessionStore {
   SessionStore(std::string dir, FsyncPolicy fsync, uint64_t interval_steps);
   std::string SessionDir(const std::string& tenant,
                          const std::string& id) const;
-  absl::StatusOr<std::unique_ptr<Journal>> OpenJournal(
-      const std::string& dir, uint64_t snapshot_bytes, bool truncate);
+  absl::StatusOr<std::unique_ptr<Journal>> OpenJournal(const std::string& dir,
+                                                       uint64_t snapshot_bytes,
+                                                       bool truncate);
 
   const std::string dir_;
   const FsyncPolicy fsync_;

@@ -168,8 +168,8 @@ KinetriServiceImpl::RestoreReport KinetriServiceImpl::EnableDurability(
     session->set_tenant(tenant.name);
     auto journal = store->Reopen(session->Meta(step), *session->Read().tri);
     if (!journal.ok()) {
-      broken[key] = absl::StrCat("cannot reopen its files: ",
-                                 journal.status().message());
+      broken[key] =
+          absl::StrCat("cannot reopen its files: ", journal.status().message());
       continue;
     }
     session->AttachJournal(*std::move(journal));
@@ -190,9 +190,9 @@ KinetriServiceImpl::RestoreReport KinetriServiceImpl::EnableDurability(
     absl::MutexLock lock(&broken_mu_);
     broken_ = std::move(broken);
   }
-  report.seconds = std::chrono::duration<double>(
-                       std::chrono::steady_clock::now() - t0)
-                       .count();
+  report.seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0)
+          .count();
   metrics_->SetRestore(static_cast<double>(report.sessions),
                        static_cast<double>(report.unavailable),
                        static_cast<double>(report.journal_bytes_cut),
@@ -283,13 +283,14 @@ grpc::Status KinetriServiceImpl::CreateSession(
   const bool on_device = limits.has_device && asked != v1::BACKEND_CPU;
   const uint64_t device_bytes =
       on_device ? header.point_count() * core::device::kDeviceBytesPerPoint : 0;
-  if (on_device && device_bytes > core::device::DeviceFreeBytes(limits.device)) {
+  if (on_device &&
+      device_bytes > core::device::DeviceFreeBytes(limits.device)) {
     return rpc.Done(grpc::Status(
         grpc::StatusCode::RESOURCE_EXHAUSTED,
-        absl::StrCat("CreateSession of ", header.point_count(), " points needs ",
-                     device_bytes >> 20, " MiB of device memory; ",
-                     core::device::DeviceFreeBytes(limits.device) >> 20,
-                     " MiB free")));
+        absl::StrCat(
+            "CreateSession of ", header.point_count(), " points needs ",
+            device_bytes >> 20, " MiB of device memory; ",
+            core::device::DeviceFreeBytes(limits.device) >> 20, " MiB free")));
   }
   // Admitted against the memory budget before any point is stored (the
   // emulated device's memory is host memory).
@@ -400,15 +401,14 @@ grpc::Status KinetriServiceImpl::CreateSession(
   if (header.options().idle_ttl_seconds() > kMaxTtl) {
     return rpc.Done(grpc::Status(
         grpc::StatusCode::INVALID_ARGUMENT,
-        absl::StrCat("options.idle_ttl_seconds: ",
-                     header.options().idle_ttl_seconds(),
-                     " exceeds 100 years (0: the server's default)")));
+        absl::StrCat(
+            "options.idle_ttl_seconds: ", header.options().idle_ttl_seconds(),
+            " exceeds 100 years (0: the server's default)")));
   }
   auto session = std::make_shared<Session>(
       id, std::move(*tri),
       on_device ? core::device::DeviceBackendName(limits.device) : "cpu",
-                                           max_results, threads, std::move(ids),
-                                           std::move(*memory), budget_);
+      max_results, threads, std::move(ids), std::move(*memory), budget_);
   session->set_idle_ttl(header.options().idle_ttl_seconds() > 0
                             ? header.options().idle_ttl_seconds()
                             : limits.default_idle_ttl_seconds);
@@ -423,10 +423,10 @@ grpc::Status KinetriServiceImpl::CreateSession(
     const Session::Snapshot snap = session->Read();
     auto journal = store_->Create(session->Meta(0), *snap.tri);
     if (!journal.ok()) {
-      return rpc.Done(ToGrpc(absl::Status(
-          journal.status().code(),
-          absl::StrCat("session not created: cannot persist it: ",
-                       journal.status().message()))));
+      return rpc.Done(ToGrpc(
+          absl::Status(journal.status().code(),
+                       absl::StrCat("session not created: cannot persist it: ",
+                                    journal.status().message()))));
     }
     session->AttachJournal(*std::move(journal));
     absl::MutexLock lock(&broken_mu_);
@@ -434,8 +434,8 @@ grpc::Status KinetriServiceImpl::CreateSession(
   }
   auto added = registry_->Add(session, *tenant);
   if (!added.ok()) {
-    if (store_ != nullptr && added.status().code() !=
-                                 absl::StatusCode::kAlreadyExists) {
+    if (store_ != nullptr &&
+        added.status().code() != absl::StatusCode::kAlreadyExists) {
       session->journal()->Close();
       store_->Remove(tenant->name, session->id()).IgnoreError();
     }

@@ -8,7 +8,6 @@
 
 #include "absl/container/flat_hash_map.h"
 #include "absl/synchronization/mutex.h"
-
 #include "kinetri/v1/kinetri.grpc.pb.h"
 #include "server/auth.h"
 #include "server/idle_watchdog.h"

@@ -112,9 +112,9 @@ absl::StatusOr<core::StepReport> Session::ApplyStep(
     if (!st.ok()) {
       absl::MutexLock lock(&mu_);
       in_place_ = false;
-      return absl::Status(st.code(),
-                          absl::StrCat("step ", step, " not applied: ",
-                                       st.message()));
+      return absl::Status(
+          st.code(),
+          absl::StrCat("step ", step, " not applied: ", st.message()));
     }
   }
   absl::StatusOr<core::StepReport> report =
@@ -229,13 +229,12 @@ absl::Status SessionRegistry::CheckTenantLocked(uint64_t points,
                      tenant.max_sessions, " sessions; delete one first"));
   }
   // Memory by the same per-point estimate the server's budget admits with.
-  const uint64_t bytes =
-      (total + points) * MemoryBudget::kSessionBytesPerPoint;
+  const uint64_t bytes = (total + points) * MemoryBudget::kSessionBytesPerPoint;
   if (tenant.max_memory_mb != 0 && bytes > (tenant.max_memory_mb << 20)) {
-    return absl::ResourceExhaustedError(absl::StrCat(
-        "tenant ", tenant.name, ": ", total, " points held + ", points,
-        " need about ", bytes >> 20, " MiB, over its limit of ",
-        tenant.max_memory_mb, " MiB"));
+    return absl::ResourceExhaustedError(
+        absl::StrCat("tenant ", tenant.name, ": ", total, " points held + ",
+                     points, " need about ", bytes >> 20,
+                     " MiB, over its limit of ", tenant.max_memory_mb, " MiB"));
   }
   if (tenant.max_points != 0 && total + points > tenant.max_points) {
     return absl::ResourceExhaustedError(absl::StrCat(

@@ -147,8 +147,8 @@ absl::StatusOr<std::vector<v1::Session>> Client::ListSessions() {
   std::string token;
   do {
     if (!init_status_.ok()) return init_status_;
-  grpc::ClientContext ctx;
-  Prepare(&ctx);
+    grpc::ClientContext ctx;
+    Prepare(&ctx);
     v1::ListSessionsRequest req;
     req.set_page_size(100);
     req.set_page_token(token);

@@ -92,9 +92,9 @@ class Client {
  public:
   // target: "host:port". Points per message chunk: 1/4 of the 4 MiB limit.
   // Unreadable TLS files make every call fail with FAILED_PRECONDITION.
-  explicit Client(const std::string& target, size_t chunk_points = 131072,
-                  const ClientSecurity& security =
-                      ClientSecurity::FromEnvironment());
+  explicit Client(
+      const std::string& target, size_t chunk_points = 131072,
+      const ClientSecurity& security = ClientSecurity::FromEnvironment());
 
   absl::StatusOr<v1::Session> CreateSession(const std::vector<double>& xy,
                                             const v1::SessionOptions& options,

@@ -389,9 +389,9 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   uint64_t device_bytes() const override {
     uint64_t words = 0;
     for (const U32Vector* v :
-         {&origin_, &twin_, &vertex_edge_, &last_, &tri_claim_, &vert_claim_, &work_, &bad_, &edges_,
-          &joins_, &kinds_, &winners_, &win_edges_, &next_, &touched_,
-          &seeds_}) {
+         {&origin_, &twin_, &vertex_edge_, &last_, &tri_claim_, &vert_claim_,
+          &work_, &bad_, &edges_, &joins_, &kinds_, &winners_, &win_edges_,
+          &next_, &touched_, &seeds_}) {
       words += v->capacity();
     }
     return words * sizeof(uint32_t) + pos_.capacity() * sizeof(Vec2) +
@@ -432,9 +432,9 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     // Invalid triangles (the first worklist).
     if (candidates == nullptr) {
       work_.resize(nt);
-      work_.erase(thr::copy_if(Count(0), Count(nt), work_.begin(),
-                               TriangleBad{m, p}),
-                  work_.end());
+      work_.erase(
+          thr::copy_if(Count(0), Count(nt), work_.begin(), TriangleBad{m, p}),
+          work_.end());
       if (work_.size() > rebuild_fraction * nt) {
         out.tangled = true;
         out.fix_seconds = Since(t0);
@@ -508,9 +508,9 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     while (true) {
       if (cancel != nullptr && cancel->Cancelled()) return -1;
       bad_.resize(work_.size());
-      bad_.erase(
-          thr::copy_if(work_.begin(), work_.end(), bad_.begin(), TriangleBad{m, p}),
-          bad_.end());
+      bad_.erase(thr::copy_if(work_.begin(), work_.end(), bad_.begin(),
+                              TriangleBad{m, p}),
+                 bad_.end());
       if (bad_.empty()) break;
       const uint32_t nb = static_cast<uint32_t>(bad_.size());
       props_.resize(nb);
@@ -532,10 +532,10 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       thr::for_each(Count(0), Count(np),
                     SplitProposal{thr::raw_pointer_cast(props_.data()),
                                   Raw(edges_), Raw(joins_), Raw(kinds_)});
-      const uint32_t nw = SelectWinners(
-          Claims{m, Raw(edges_), Raw(joins_), Raw(tri_claim_),
-                 Raw(vert_claim_), nv},
-          np);
+      const uint32_t nw =
+          SelectWinners(Claims{m, Raw(edges_), Raw(joins_), Raw(tri_claim_),
+                               Raw(vert_claim_), nv},
+                        np);
       // Next worklist: the still-invalid triangles plus every winner's
       // footprint (taken before flipping; flips keep triangle ids).
       win_edges_.resize(nw);
@@ -545,10 +545,10 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       thr::copy(bad_.begin(), bad_.end(), next_.begin());
       const size_t touched_base = touched_.size();
       if (keep_touched) touched_.resize(touched_base + 2ull * nw);
-      thr::for_each(
-          Count(0), Count(nw),
-          WriteFootprint{m, Raw(win_edges_), Raw(next_) + nb,
-                         keep_touched ? Raw(touched_) + touched_base : nullptr});
+      thr::for_each(Count(0), Count(nw),
+                    WriteFootprint{
+                        m, Raw(win_edges_), Raw(next_) + nb,
+                        keep_touched ? Raw(touched_) + touched_base : nullptr});
       FlipWinners(m, nw);
       // Flip kinds of the winners (kinds_ reused as their gathered copy).
       bad_.resize(nw);
@@ -570,9 +570,9 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       // Every triangle is valid but the hull winds more than once: the
       // ghost triangles' vertices are the ones to hold back.
       bad_.resize(nt);
-      bad_.erase(thr::copy_if(Count(0), Count(nt), bad_.begin(),
-                              IsGhostTriangle{m}),
-                 bad_.end());
+      bad_.erase(
+          thr::copy_if(Count(0), Count(nt), bad_.begin(), IsGhostTriangle{m}),
+          bad_.end());
       Stuck(m, bad_, out);
       return 0;
     }

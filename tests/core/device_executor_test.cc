@@ -3,6 +3,8 @@
 // the two must build the same mesh down to the numbering of half-edges; it
 // keeps the mesh resident across steps (only positions go up once it is in
 // sync); and the CUDA backend is refused cleanly where there is no GPU.
+#include "core/device/device_executor.h"
+
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -10,7 +12,6 @@
 #include <random>
 #include <vector>
 
-#include "core/device/device_executor.h"
 #include "core/triangulation.h"
 #include "tests/core/test_util.h"
 
@@ -68,7 +69,8 @@ TEST(DeviceExecutor, EqualsTheRoundExecutorHalfEdgeForHalfEdge) {
     std::mt19937_64 rng(7);
     const double spacing = 1.0 / std::sqrt(double(c.pts.size()));
     for (int s = 0; s < 6; ++s) {
-      const DisplacementBatch b = Brownian(c.pts.size(), c.sigma * spacing, rng);
+      const DisplacementBatch b =
+          Brownian(c.pts.size(), c.sigma * spacing, rng);
       auto rr = rounds->ApplyDisplacements(b);
       auto rd = dev->ApplyDisplacements(b);
       ASSERT_TRUE(rr.ok() && rd.ok()) << rr.status() << rd.status();
@@ -96,7 +98,8 @@ TEST(DeviceExecutor, EqualsTheRoundExecutorHalfEdgeForHalfEdge) {
 // result); a rebuild or re-insertion makes the next step upload it again.
 TEST(DeviceExecutor, MeshStaysResidentAcrossSteps) {
   const size_t n = 4000;
-  auto t = Triangulation::Create(testing::UniformPoints(n, 11), DeviceOptions());
+  auto t =
+      Triangulation::Create(testing::UniformPoints(n, 11), DeviceOptions());
   ASSERT_TRUE(t.ok());
   EXPECT_EQ(t->device_bytes(), 0u);  // nothing goes up before a step
   std::mt19937_64 rng(12);
@@ -166,7 +169,8 @@ TEST(DeviceExecutor, ResultIndependentOfThreadCount) {
   ASSERT_TRUE(a.ok() && b.ok());
   std::mt19937_64 rng(32);
   for (int s = 0; s < 5; ++s) {
-    const DisplacementBatch batch = Brownian(n, 0.4 / std::sqrt(double(n)), rng);
+    const DisplacementBatch batch =
+        Brownian(n, 0.4 / std::sqrt(double(n)), rng);
     ASSERT_TRUE(a->ApplyDisplacements(batch).ok());
     ASSERT_TRUE(b->ApplyDisplacements(batch).ok());
     ExpectSameMesh(*a, *b, "step " + std::to_string(s));
@@ -176,7 +180,8 @@ TEST(DeviceExecutor, ResultIndependentOfThreadCount) {
 // A clone has its own device copy; both go on independently and exactly.
 TEST(DeviceExecutor, CloneHasItsOwnDeviceCopy) {
   const size_t n = 2000;
-  auto t = Triangulation::Create(testing::UniformPoints(n, 41), DeviceOptions());
+  auto t =
+      Triangulation::Create(testing::UniformPoints(n, 41), DeviceOptions());
   ASSERT_TRUE(t.ok());
   std::mt19937_64 rng(42);
   const double sigma = 0.2 / std::sqrt(double(n));

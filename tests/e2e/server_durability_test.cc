@@ -133,13 +133,13 @@ TEST_F(DurabilityTest, KilledAtRandomMomentsLosesNoAcknowledgedStep) {
     std::normal_distribution<double> g(0.0, 0.002);
     while (!dead) {
       if (model.size() < 12 && (model.size() < 6 || rng() % 8 == 0)) {
-        const std::string name =
-            "sessions/c" + std::to_string(round) + "-" + std::to_string(rng() % 100000);
+        const std::string name = "sessions/c" + std::to_string(round) + "-" +
+                                 std::to_string(rng() % 100000);
         if (model.count(name) || maybe_created.count(name)) continue;
         const std::vector<double> xy = testing::UniformXY(size(rng), rng());
         maybe_created[name] = xy;
-        auto s = client_->CreateSession(xy, v1::SessionOptions(),
-                                        name.substr(9));
+        auto s =
+            client_->CreateSession(xy, v1::SessionOptions(), name.substr(9));
         if (!s.ok()) break;
         maybe_created.erase(name);
         model[name] = Model{xy, 0, false, {}};
@@ -274,8 +274,8 @@ TEST_F(DurabilityTest, CorruptAndTruncatedFiles) {
   EXPECT_TRUE(client_->DeleteSession("sessions/bad").ok());
   EXPECT_EQ(client_->GetSession("sessions/bad").status().code(),
             absl::StatusCode::kNotFound);
-  EXPECT_TRUE(client_->CreateSession(xy["keep"], v1::SessionOptions(), "bad")
-                  .ok());
+  EXPECT_TRUE(
+      client_->CreateSession(xy["keep"], v1::SessionOptions(), "bad").ok());
 }
 
 // A full disk (here: a file-size limit) refuses the step with a clear

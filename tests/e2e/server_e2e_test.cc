@@ -406,15 +406,15 @@ TEST_F(E2eTest, MetricsMove) {
   const std::string after =
       testing::HttpGet(server_->metrics_port(), "/metrics");
   EXPECT_NE(after.find("kinetri_steps_total{path="), std::string::npos);
-  EXPECT_NE(after.find(absl::StrCat(
-                "kinetri_update_duration_seconds_count{backend=\"", kBackend,
-                "\"} 1")),
+  EXPECT_NE(after.find(
+                absl::StrCat("kinetri_update_duration_seconds_count{backend=\"",
+                             kBackend, "\"} 1")),
             std::string::npos)
       << after;
-  EXPECT_NE(after.find(absl::StrCat(
-                "kinetri_query_duration_seconds_count{backend=\"", kBackend,
-                "\",op=\"nearest\"} 1")),
-            std::string::npos);
+  EXPECT_NE(
+      after.find(absl::StrCat("kinetri_query_duration_seconds_count{backend=\"",
+                              kBackend, "\",op=\"nearest\"} 1")),
+      std::string::npos);
   EXPECT_NE(after.find("grpc_code=\"INVALID_ARGUMENT\""), std::string::npos);
   EXPECT_NE(after.find("kinetri_sessions 1"), std::string::npos);
 }

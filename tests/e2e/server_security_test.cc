@@ -54,15 +54,15 @@ class SecurityTest : public ::testing::Test {
   // A TLS server with tokens for tenants alpha and beta (beta: at most one
   // session); mutual TLS when `mutual`.
   void StartServer(bool mutual) {
-    WriteFile(File("tokens"),
-              std::string("# test tokens\n") + kTokenA + " alpha\n" + kTokenB +
-                  " beta sessions=1\n" + kTokenD + " delta memory_mb=1\n");
+    WriteFile(File("tokens"), std::string("# test tokens\n") + kTokenA +
+                                  " alpha\n" + kTokenB + " beta sessions=1\n" +
+                                  kTokenD + " delta memory_mb=1\n");
     std::vector<std::string> flags = {
         "--tls_cert=" + File("server.pem"), "--tls_key=" + File("server.key"),
         "--auth_tokens_file=" + File("tokens"), "--tls_reload_seconds=1"};
     if (mutual) flags.push_back("--tls_client_ca=" + File("ca.pem"));
-    server_ = std::make_unique<testing::ServerProcess>(KINETRI_SERVER_BINARY,
-                                                       flags);
+    server_ =
+        std::make_unique<testing::ServerProcess>(KINETRI_SERVER_BINARY, flags);
     ASSERT_TRUE(server_->ok());
   }
   ClientSecurity Secure(const std::string& token, bool client_cert = false) {
@@ -160,8 +160,8 @@ TEST_F(SecurityTest, TenantsSeeOnlyTheirOwnSessions) {
   ASSERT_TRUE(listed.ok());
   EXPECT_TRUE(listed->empty());
   const auto nf = absl::StatusCode::kNotFound;
-  for (const std::string& name : {std::string("sessions/shared-name"),
-                                  std::string(generated->name())}) {
+  for (const std::string& name :
+       {std::string("sessions/shared-name"), std::string(generated->name())}) {
     EXPECT_EQ(beta->GetSession(name).status().code(), nf);
     EXPECT_EQ(beta->NearestOfAll(name).status().code(), nf);
     EXPECT_EQ(beta->Export(name).status().code(), nf);
@@ -180,11 +180,11 @@ TEST_F(SecurityTest, TenantsSeeOnlyTheirOwnSessions) {
   EXPECT_EQ(alpha_list->size(), 2u);
   // Delta's memory limit: 1 MiB holds about 3000 points (350 B each).
   auto delta = Connect(Secure(kTokenD));
-  EXPECT_TRUE(delta->CreateSession(testing::UniformXY(2000, 10),
-                                   v1::SessionOptions())
-                  .ok());
-  auto over = delta->CreateSession(testing::UniformXY(2000, 11),
-                                   v1::SessionOptions());
+  EXPECT_TRUE(
+      delta->CreateSession(testing::UniformXY(2000, 10), v1::SessionOptions())
+          .ok());
+  auto over =
+      delta->CreateSession(testing::UniformXY(2000, 11), v1::SessionOptions());
   EXPECT_EQ(over.status().code(), absl::StatusCode::kResourceExhausted);
   EXPECT_NE(over.status().message().find("MiB"), std::string::npos);
   // Beta's own limit: one session.
@@ -229,10 +229,9 @@ TEST_F(SecurityTest, CertificateRotationKeepsSessions) {
   WriteFile(File("tokens"), std::string(kTokenA) + " alpha\n");
   server_ = std::make_unique<testing::ServerProcess>(
       KINETRI_SERVER_BINARY,
-      std::vector<std::string>{"--tls_cert=" + File("rot.pem"),
-                               "--tls_key=" + File("rot.key"),
-                               "--auth_tokens_file=" + File("tokens"),
-                               "--tls_reload_seconds=1"});
+      std::vector<std::string>{
+          "--tls_cert=" + File("rot.pem"), "--tls_key=" + File("rot.key"),
+          "--auth_tokens_file=" + File("tokens"), "--tls_reload_seconds=1"});
   ASSERT_TRUE(server_->ok());
   ASSERT_TRUE(Connect(Secure(kTokenA))
                   ->CreateSession(testing::UniformXY(100, 7),
@@ -281,8 +280,7 @@ TEST_F(SecurityTest, PlaintextHealthPortForProbes) {
 // Protected mode: a non-loopback address without TLS and tokens is refused
 // (exit status 2) unless --insecure says so.
 TEST(SecurityProtectedMode, RefusesPublicPlaintextUnlessInsecure) {
-  testing::ServerProcess refused(KINETRI_SERVER_BINARY,
-                                 {"--listen=0.0.0.0:0"});
+  testing::ServerProcess refused(KINETRI_SERVER_BINARY, {"--listen=0.0.0.0:0"});
   EXPECT_FALSE(refused.ok());
   const int status = refused.Stop();
   EXPECT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) == 2) << status;
