@@ -19,6 +19,7 @@ namespace kinetri::core {
 namespace {
 
 using device::DeviceBackend;
+using testing::Brownian;
 
 TriangulationOptions DeviceOptions(int threads = 0) {
   TriangulationOptions o;
@@ -26,13 +27,6 @@ TriangulationOptions DeviceOptions(int threads = 0) {
   o.device_backend = DeviceBackend::kEmulated;
   o.num_threads = threads;
   return o;
-}
-
-DisplacementBatch Brownian(size_t n, double sigma, std::mt19937_64& rng) {
-  std::normal_distribution<double> g(0.0, sigma);
-  std::vector<Vec2> d(n);
-  for (auto& v : d) v = {g(rng), g(rng)};
-  return DisplacementBatch::Dense(std::move(d));
 }
 
 void ExpectSameMesh(const Triangulation& a, const Triangulation& b,

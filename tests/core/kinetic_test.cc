@@ -15,6 +15,7 @@
 namespace kinetri::core {
 namespace {
 
+using testing::Brownian;
 using testing::CgalDelaunayEdges;
 using testing::EdgesAsPositions;
 
@@ -57,13 +58,6 @@ PathTally RunSequence(Triangulation& t, int steps,
     if (!v.ok()) return tally;
   }
   return tally;
-}
-
-DisplacementBatch Brownian(size_t n, double sigma, std::mt19937_64& rng) {
-  std::normal_distribution<double> g(0.0, sigma);
-  std::vector<Vec2> d(n);
-  for (auto& v : d) v = {g(rng), g(rng)};
-  return DisplacementBatch::Dense(std::move(d));
 }
 
 class BrownianTest : public ::testing::TestWithParam<double> {};

@@ -26,6 +26,8 @@ std::vector<Vec2> WithDuplicates(size_t n, int copies, uint64_t seed);
 
 // Delaunay edges of the distinct positions, by CGAL; each pair lex-ordered.
 EdgeList CgalDelaunayEdges(const std::vector<Vec2>& points);
+// A dense batch of n Gaussian displacements (standard deviation sigma).
+core::DisplacementBatch Brownian(size_t n, double sigma, std::mt19937_64& rng);
 // The triangulation's edges as position pairs, in the same normal form.
 EdgeList EdgesAsPositions(const core::Triangulation& t);
 // The edges of triangles given as index triples into `points` (flat i, j,
