@@ -69,14 +69,14 @@ uint32_t Crc(const std::string& payload) {
             static_cast<uInt>(payload.size())));
 }
 
-std::string Frame(uint32_t type, const std::string& payload) {
+// A record is this header followed by the payload (written separately: a
+// step's payload is as large as the positions).
+std::string Header(uint32_t type, const std::string& payload) {
   std::string r;
-  r.reserve(kHeader + payload.size());
   Put<uint32_t>(&r, kMagic);
   Put<uint32_t>(&r, type);
   Put<uint64_t>(&r, payload.size());
   Put<uint32_t>(&r, Crc(payload));
-  r.append(payload);
   return r;
 }
 
@@ -146,10 +146,9 @@ std::string StepPayload(uint64_t step, const core::DisplacementBatch& b) {
   Put<uint64_t>(&p, b.ids.size());
   p.append(reinterpret_cast<const char*>(b.ids.data()), 4 * b.ids.size());
   Put<uint64_t>(&p, b.values.size());
-  for (const core::Vec2& v : b.values) {
-    Put<double>(&p, v.x);
-    Put<double>(&p, v.y);
-  }
+  static_assert(sizeof(core::Vec2) == 2 * sizeof(double));
+  p.append(reinterpret_cast<const char*>(b.values.data()),
+           sizeof(core::Vec2) * b.values.size());
   return p;
 }
 
@@ -166,10 +165,7 @@ bool ParseStep(const std::string& payload, RestoredSession::Step* out) {
   for (uint32_t& id : out->batch.ids) r.Get(&id);
   if (!r.Get(&nvals) || !r.Has(nvals, 16)) return false;
   out->batch.values.resize(nvals);
-  for (core::Vec2& v : out->batch.values) {
-    r.Get(&v.x);
-    r.Get(&v.y);
-  }
+  for (core::Vec2& v : out->batch.values) r.Get(&v);
   return r.done();
 }
 
@@ -199,18 +195,17 @@ absl::StatusOr<uint64_t> WriteSnapshot(const std::string& dir,
   Put<uint64_t>(&p, meta.step);
   Put<int64_t>(&p, absl::ToUnixNanos(meta.create_time));
   Put<uint64_t>(&p, pos.size());
-  for (const core::Vec2& v : pos) {
-    Put<double>(&p, v.x);
-    Put<double>(&p, v.y);
-  }
+  p.append(reinterpret_cast<const char*>(pos.data()),
+           sizeof(core::Vec2) * pos.size());
   Put<uint64_t>(&p, meta.client_ids.size());
   p.append(reinterpret_cast<const char*>(meta.client_ids.data()),
            8 * meta.client_ids.size());
-  const std::string record = Frame(kSnapshotRecord, p);
+  const std::string header = Header(kSnapshotRecord, p);
   const std::string tmp = dir + "/snapshot.tmp";
   const int fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0600);
   if (fd < 0) return Errno(absl::StrCat("create ", tmp));
-  absl::Status st = WriteAll(fd, record, absl::StrCat("write ", tmp));
+  absl::Status st = WriteAll(fd, header, absl::StrCat("write ", tmp));
+  if (st.ok()) st = WriteAll(fd, p, absl::StrCat("write ", tmp));
   if (st.ok() && ::fsync(fd) != 0) st = Errno(absl::StrCat("fsync ", tmp));
   ::close(fd);
   if (st.ok() && ::rename(tmp.c_str(), (dir + "/snapshot").c_str()) != 0) {
@@ -221,7 +216,7 @@ absl::StatusOr<uint64_t> WriteSnapshot(const std::string& dir,
     ::unlink(tmp.c_str());
     return st;
   }
-  return record.size();
+  return header.size() + p.size();
 }
 
 Journal::Journal(SessionStore* store, std::string dir, int fd, uint64_t size,
@@ -243,7 +238,7 @@ Journal::~Journal() {
   ::close(fd_);
 }
 
-absl::Status Journal::Write(const std::string& record) {
+absl::Status Journal::Write(uint32_t type, const std::string& payload) {
   if (closed_) {
     return absl::FailedPreconditionError("the session was deleted");
   }
@@ -252,13 +247,15 @@ absl::Status Journal::Write(const std::string& record) {
         "the session's journal failed earlier; its files may not match it, "
         "so it takes no more steps (queries still work)");
   }
-  absl::Status st = WriteAll(fd_, record, absl::StrCat("journal ", dir_));
+  const std::string header = Header(type, payload);
+  absl::Status st = WriteAll(fd_, header, absl::StrCat("journal ", dir_));
+  if (st.ok()) st = WriteAll(fd_, payload, absl::StrCat("journal ", dir_));
   if (!st.ok()) {
     // Leave no partial record behind.
     if (::ftruncate(fd_, static_cast<off_t>(size_)) != 0) broken_ = true;
     return st;
   }
-  size_ += record.size();
+  size_ += header.size() + payload.size();
   if (fsync_ == FsyncPolicy::kAlways) {
     if (::fdatasync(fd_) != 0) return Errno(absl::StrCat("fsync ", dir_));
   } else if (fsync_ == FsyncPolicy::kEverySecond) {
@@ -269,13 +266,13 @@ absl::Status Journal::Write(const std::string& record) {
 
 absl::Status Journal::Append(uint64_t step,
                              const core::DisplacementBatch& batch) {
-  return Write(Frame(kStepRecord, StepPayload(step, batch)));
+  return Write(kStepRecord, StepPayload(step, batch));
 }
 
 absl::Status Journal::Abort(uint64_t step) {
   std::string p;
   Put<uint64_t>(&p, step);
-  absl::Status st = Write(Frame(kAbortRecord, p));
+  absl::Status st = Write(kAbortRecord, p);
   // Without the abort record a restore would replay a step that never
   // happened: stop taking steps.
   if (!st.ok() && !closed_) broken_ = true;
@@ -458,10 +455,7 @@ std::vector<RestoredSession> SessionStore::LoadAll(
       if (ok) {
         s.meta.create_time = absl::FromUnixNanos(created);
         s.positions.resize(n);
-        for (core::Vec2& v : s.positions) {
-          r.Get(&v.x);
-          r.Get(&v.y);
-        }
+        for (core::Vec2& v : s.positions) r.Get(&v);
         ok = r.Get(&nids) && r.Has(nids, 8) && (nids == 0 || nids == n);
       }
       if (ok) {

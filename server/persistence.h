@@ -81,7 +81,7 @@ class Journal {
   friend class SessionStore;
   Journal(SessionStore* store, std::string dir, int fd, uint64_t size,
           uint64_t snapshot_bytes, FsyncPolicy fsync, uint64_t interval_steps);
-  absl::Status Write(const std::string& record);
+  absl::Status Write(uint32_t type, const std::string& payload);
 
   SessionStore* const store_;
   const std::string dir_;
