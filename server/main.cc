@@ -167,6 +167,8 @@ int main(int argc, char** argv) {
                 limits.has_device ? dev::DeviceBackendName(limits.device)
                                   : "none (CPU sessions only)");
   }
+  // Declared before the registry: the sessions' journals outlive neither.
+  std::unique_ptr<kinetri::server::SessionStore> store;
   kinetri::server::SessionRegistry registry(limits);
   kinetri::server::Metrics metrics;
   const std::string metrics_addr = absl::GetFlag(FLAGS_metrics_listen);
@@ -241,7 +243,6 @@ int main(int argc, char** argv) {
     std::printf("kinetri-server: memory budget %llu MiB (--max_memory_mb)\n",
                 static_cast<unsigned long long>(budget.limit() >> 20));
   }
-  std::unique_ptr<kinetri::server::SessionStore> store;
   if (!absl::GetFlag(FLAGS_data_dir).empty()) {
     auto fsync = kinetri::server::ParseFsyncPolicy(absl::GetFlag(FLAGS_fsync));
     if (!fsync.ok()) {

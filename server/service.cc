@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
+#include <optional>
 
 #include "absl/container/flat_hash_map.h"
 #include "absl/strings/numbers.h"
@@ -412,7 +413,9 @@ grpc::Status KinetriServiceImpl::CreateSession(
   session->set_idle_ttl(header.options().idle_ttl_seconds() > 0
                             ? header.options().idle_ttl_seconds()
                             : limits.default_idle_ttl_seconds);
+  std::optional<absl::MutexLock> create_lock;
   if (store_ != nullptr) {
+    create_lock.emplace(&create_mu_);
     // Durable: the first snapshot is on disk before the session exists.
     if (registry_->Get(session->name(), tenant->name).ok()) {
       return rpc.Done(grpc::Status(

@@ -84,6 +84,9 @@ class KinetriServiceImpl final : public v1::KinetriService::Service {
   MemoryBudget* budget_;
   const TokenAuth* auth_;
   SessionStore* store_ = nullptr;
+  // Durable creations one at a time: the existence check, the first
+  // snapshot and the registration must not interleave for one name.
+  absl::Mutex create_mu_;
   mutable absl::Mutex broken_mu_;
   // "tenant@id" -> why it cannot be restored.
   absl::flat_hash_map<std::string, std::string> broken_
