@@ -154,8 +154,7 @@ std::vector<Vec2> QueryPoints(const std::vector<Vec2>& pts, size_t m,
   return q;
 }
 
-core::DisplacementBatch Brownian(size_t n, double sigma,
-                                 std::mt19937_64& rng) {
+core::DisplacementBatch Brownian(size_t n, double sigma, std::mt19937_64& rng) {
   std::normal_distribution<double> g(0.0, sigma);
   std::vector<Vec2> d(n);
   for (auto& v : d) v = {g(rng), g(rng)};
