@@ -12,6 +12,7 @@ PACKAGES=(
   python3 python3-grpcio python3-protobuf python3-numpy python3-yaml
   libssl-dev openssl
   redis-server gnuplot-nox
+  haproxy  # tests/e2e/server_replicas_test.cc: deploy/proxy/haproxy.cfg
 )
 # Node.js (for client/node) comes with the machine image; it is not a Debian
 # package here, so it is checked, not installed.

@@ -16,6 +16,8 @@
 #include <thread>
 
 #include "absl/flags/flag.h"
+#include "absl/time/clock.h"
+#include "absl/time/time.h"
 #include "core/device/device_executor.h"
 #include "core/program_flags.h"
 #include "server/auth.h"
@@ -388,6 +390,15 @@ int main(int argc, char** argv) {
       std::chrono::system_clock::now() +
       std::chrono::seconds(absl::GetFlag(FLAGS_shutdown_grace_seconds)));
   server->Wait();
+  if (store) {
+    // Calls are over: snapshot every session whose journal has steps, so
+    // the next start restores without replaying them.
+    const absl::Time start = absl::Now();
+    const size_t written = service.CheckpointAll();
+    std::printf("kinetri-server: wrote %zu snapshot(s) in %.3f s\n", written,
+                absl::ToDoubleSeconds(absl::Now() - start));
+    std::fflush(stdout);
+  }
   if (health_server) {
     health_server->Shutdown(std::chrono::system_clock::now());
     health_server->Wait();

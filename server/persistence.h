@@ -68,6 +68,9 @@ class Journal {
   bool CompactionDue();
   // Writes a snapshot of `tri` at `meta.step`, then empties the journal.
   absl::Status Compact(const SessionMeta& meta, const core::Triangulation& tri);
+  // Records written since the last snapshot (a checkpoint would shorten
+  // the next restore).
+  bool has_records() const { return size_ > 0; }
   // Syncs the journal file (everysec's background thread).
   void Sync();
   // A write failed after a step was journaled: the files may no longer

@@ -220,6 +220,22 @@ size_t KinetriServiceImpl::ExpireIdleSessions() {
   return expired;
 }
 
+size_t KinetriServiceImpl::CheckpointAll() {
+  if (store_ == nullptr) return 0;
+  size_t written = 0;
+  for (const std::shared_ptr<Session>& s : registry_->All()) {
+    absl::StatusOr<bool> done = s->Checkpoint();
+    if (!done.ok()) {
+      std::fprintf(stderr, "kinetri-server: no snapshot of %s: %s\n",
+                   s->name().c_str(),
+                   std::string(done.status().message()).c_str());
+    } else if (*done) {
+      ++written;
+    }
+  }
+  return written;
+}
+
 absl::StatusOr<std::shared_ptr<Session>> KinetriServiceImpl::Lookup(
     const std::string& name, const std::string& tenant) const {
   auto s = registry_->Get(name, tenant);

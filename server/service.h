@@ -46,6 +46,10 @@ class KinetriServiceImpl final : public v1::KinetriService::Service {
   // Deletes the sessions whose idle TTL has passed (files included);
   // returns how many. The server calls it every second.
   size_t ExpireIdleSessions();
+  // Durable sessions: snapshots every session whose journal has steps
+  // (after the drain at shutdown); returns how many were written and
+  // reports failures on stderr (their journals stay valid).
+  size_t CheckpointAll();
 
   grpc::Status CreateSession(
       grpc::ServerContext* ctx,

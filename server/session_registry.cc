@@ -142,6 +142,17 @@ absl::StatusOr<core::StepReport> Session::ApplyStep(
   return report;
 }
 
+absl::StatusOr<bool> Session::Checkpoint() {
+  absl::MutexLock write_lock(&write_mu_);
+  if (journal_ == nullptr || journal_->broken() || !journal_->has_records()) {
+    return false;
+  }
+  const Snapshot now = Read();
+  absl::Status st = journal_->Compact(Meta(now.step), *now.tri);
+  if (!st.ok()) return st;
+  return true;
+}
+
 void Session::RestoreStep(uint64_t step, absl::Time create_time) {
   absl::MutexLock lock(&mu_);
   step_ = step;

@@ -89,6 +89,11 @@ class Session {
     journal_ = std::move(journal);
   }
   Journal* journal() const { return journal_.get(); }
+  // Durable sessions: writes a snapshot of the current step and empties the
+  // journal (the drain at shutdown does it, so that a restart restores
+  // without replaying). Waits for a running step; false when there was
+  // nothing to write.
+  absl::StatusOr<bool> Checkpoint();
   // Restored sessions start at their last durable step.
   void RestoreStep(uint64_t step, absl::Time create_time);
   // What a snapshot of this session at `step` records.

@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cstdlib>
 #include <fstream>
+#include <random>
 #include <sstream>
 
 #include "absl/strings/str_cat.h"
@@ -37,6 +38,26 @@ absl::StatusOr<std::string> ReadFile(const std::string& path,
 }
 
 }  // namespace
+
+std::string SessionRoutingKey(const std::string& name) {
+  constexpr std::string_view kPrefix = "sessions/";
+  if (name.compare(0, kPrefix.size(), kPrefix) == 0) {
+    return name.substr(kPrefix.size());
+  }
+  return name;
+}
+
+std::string NewSessionId() {
+  std::random_device device;  // getrandom(2) on Linux
+  std::string id = "s-";
+  constexpr char kHex[] = "0123456789abcdef";
+  for (int i = 0; i < 4; ++i) {
+    const uint32_t word = device();
+    for (int shift = 28; shift >= 0; shift -= 4)
+      id += kHex[(word >> shift) & 15];
+  }
+  return id;
+}
 
 ClientSecurity ClientSecurity::FromEnvironment() {
   ClientSecurity s;
@@ -81,8 +102,12 @@ Client::Client(const std::string& target, size_t chunk_points,
   stub_ = v1::KinetriService::NewStub(channel_);
 }
 
-void Client::Prepare(grpc::ClientContext* ctx) const {
+void Client::Prepare(grpc::ClientContext* ctx,
+                     const std::string& session) const {
   if (!token_.empty()) ctx->AddMetadata("authorization", "Bearer " + token_);
+  if (!session.empty()) {
+    ctx->AddMetadata(kSessionHeader, SessionRoutingKey(session));
+  }
 }
 
 absl::StatusOr<v1::Session> Client::CreateSession(
@@ -104,12 +129,13 @@ absl::StatusOr<v1::Session> Client::CreateSessionWithIds(
     return absl::InvalidArgumentError("xy: odd number of coordinates");
   }
   if (!init_status_.ok()) return init_status_;
+  const std::string id = session_id.empty() ? NewSessionId() : session_id;
   grpc::ClientContext ctx;
-  Prepare(&ctx);
+  Prepare(&ctx, id);
   v1::Session session;
   auto writer = stub_->CreateSession(&ctx, &session);
   v1::CreateSessionRequest head;
-  head.mutable_header()->set_session_id(session_id);
+  head.mutable_header()->set_session_id(id);
   *head.mutable_header()->mutable_options() = options;
   head.mutable_header()->set_point_count(xy.size() / 2);
   bool ok = writer->Write(head);
@@ -133,7 +159,7 @@ absl::StatusOr<v1::Session> Client::CreateSessionWithIds(
 absl::StatusOr<v1::Session> Client::GetSession(const std::string& name) {
   if (!init_status_.ok()) return init_status_;
   grpc::ClientContext ctx;
-  Prepare(&ctx);
+  Prepare(&ctx, name);
   v1::GetSessionRequest req;
   req.set_name(name);
   v1::Session s;
@@ -164,7 +190,7 @@ absl::StatusOr<std::vector<v1::Session>> Client::ListSessions() {
 absl::Status Client::DeleteSession(const std::string& name) {
   if (!init_status_.ok()) return init_status_;
   grpc::ClientContext ctx;
-  Prepare(&ctx);
+  Prepare(&ctx, name);
   v1::DeleteSessionRequest req;
   req.set_name(name);
   google::protobuf::Empty empty;
@@ -182,7 +208,7 @@ absl::StatusOr<std::unique_ptr<StepStream>> Client::OpenSteps(
 absl::StatusOr<Neighbors> Client::Query(const v1::QueryRequest& request) {
   if (!init_status_.ok()) return init_status_;
   grpc::ClientContext ctx;
-  Prepare(&ctx);
+  Prepare(&ctx, request.session());
   auto reader = stub_->Query(&ctx, request);
   Neighbors out;
   out.offsets.push_back(0);
@@ -285,7 +311,7 @@ absl::StatusOr<Neighbors> Client::WithinRadiusOfPoints(
 absl::StatusOr<Mesh> Client::Export(const std::string& name) {
   if (!init_status_.ok()) return init_status_;
   grpc::ClientContext ctx;
-  Prepare(&ctx);
+  Prepare(&ctx, name);
   v1::ExportTriangulationRequest req;
   req.set_session(name);
   auto reader = stub_->ExportTriangulation(&ctx, req);
@@ -311,6 +337,7 @@ StepStream::StepStream(v1::KinetriService::Stub* stub, std::string session,
       next_step_(first_step),
       chunk_values_(std::max<size_t>(2, chunk_values & ~size_t{1})) {
   if (!token.empty()) ctx_.AddMetadata("authorization", "Bearer " + token);
+  ctx_.AddMetadata(kSessionHeader, SessionRoutingKey(session_));
   stream_ = stub->StreamSteps(&ctx_);
 }
 

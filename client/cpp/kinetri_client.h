@@ -38,7 +38,8 @@ struct Mesh {
 // Sends one batch per simulation step on a long-lived stream.
 class StepStream {
  public:
-  // `token`: bearer token for the call ("" for none).
+  // `token`: bearer token for the call ("" for none). The call carries
+  // the session's routing header (see kSessionHeader).
   StepStream(v1::KinetriService::Stub* stub, std::string session,
              uint64_t first_step, size_t chunk_values,
              const std::string& token = "");
@@ -88,6 +89,20 @@ struct ClientSecurity {
   static ClientSecurity FromEnvironment();
 };
 
+// Every call about one session carries its id in this header, so that a
+// proxy in front of several servers (nginx `hash $http_kinetri_session
+// consistent`, deploy/README.md) sends all of a session's calls, its
+// creation included, to the replica that owns it.
+inline constexpr char kSessionHeader[] = "kinetri-session";
+
+// The routing key of a session: its id ("sessions/{id}" -> "{id}").
+std::string SessionRoutingKey(const std::string& name);
+
+// A new session id, as the server would make one: "s-" + 128 random bits in
+// hex. CreateSession uses it when the caller names no session, so that the
+// creation is routed by the same key as every later call.
+std::string NewSessionId();
+
 class Client {
  public:
   // target: "host:port". Points per message chunk: 1/4 of the 4 MiB limit.
@@ -96,6 +111,7 @@ class Client {
       const std::string& target, size_t chunk_points = 131072,
       const ClientSecurity& security = ClientSecurity::FromEnvironment());
 
+  // An empty session_id gets NewSessionId().
   absl::StatusOr<v1::Session> CreateSession(const std::vector<double>& xy,
                                             const v1::SessionOptions& options,
                                             const std::string& session_id = "");
@@ -104,6 +120,8 @@ class Client {
       const std::vector<double>& xy, const std::vector<uint64_t>& client_ids,
       v1::SessionOptions options, const std::string& session_id = "");
   absl::StatusOr<v1::Session> GetSession(const std::string& name);
+  // The sessions of the server this client reaches (behind a proxy: of the
+  // replica that calls without a session header go to).
   absl::StatusOr<std::vector<v1::Session>> ListSessions();
   absl::Status DeleteSession(const std::string& name);
 
@@ -130,8 +148,9 @@ class Client {
   absl::StatusOr<Mesh> Export(const std::string& name);
 
   v1::KinetriService::Stub* stub() { return stub_.get(); }
-  // Adds the bearer token to a context the caller made for stub().
-  void Prepare(grpc::ClientContext* ctx) const;
+  // Adds the bearer token, and the routing header of `session` (a name or
+  // id; "" for calls about no session), to a context made for stub().
+  void Prepare(grpc::ClientContext* ctx, const std::string& session = "") const;
 
  private:
   absl::Status init_status_;  // TLS files that could not be read

@@ -7,6 +7,7 @@
 // and come back as BigInt.
 'use strict';
 
+const crypto = require('crypto');
 const fs = require('fs');
 const path = require('path');
 const grpc = require('@grpc/grpc-js');
@@ -24,6 +25,25 @@ function loadService() {
     oneofs: true, includeDirs: [path.join(__dirname, '..', '..', 'proto')],
   });
   return grpc.loadPackageDefinition(def).kinetri.v1.KinetriService;
+}
+
+// Every call about one session carries its id in this header, so that a
+// proxy in front of several servers (HAProxy hashing the header,
+// deploy/proxy/haproxy.cfg) sends all of a session's calls to its owner.
+const SESSION_HEADER = 'kinetri-session';
+
+// Call metadata routing a call to the owner of `session` (a name
+// "sessions/{id}" or an id).
+function route(session) {
+  const md = new grpc.Metadata();
+  md.set(SESSION_HEADER, session.startsWith('sessions/') ?
+    session.slice('sessions/'.length) : session);
+  return md;
+}
+
+// A new session id as the server would make one: "s-" + 128 random bits.
+function newSessionId() {
+  return 's-' + crypto.randomBytes(16).toString('hex');
 }
 
 class KinetriError extends Error {
@@ -83,7 +103,7 @@ class StepStream {
     this.clientIds = clientIds;
     this.session = session;
     this.nextStep = firstStep;
-    this.call = stub.StreamSteps();
+    this.call = stub.StreamSteps(route(session));
     this.pending = [];
     this.error = null;
     this.call.on('data', (resp) => {
@@ -206,8 +226,11 @@ class Client {
     }
     const options = {threads, pointIdPolicy: idList ? 'POINT_ID_POLICY_CLIENT'
                                                      : 'POINT_ID_POLICY_SEQUENTIAL'};
+    // Named here when the caller does not, so that a proxy routes the
+    // creation by the same key as every later call (deploy/README.md).
+    sessionId = sessionId || newSessionId();
     const s = await wrap((cb) => {
-      const call = this.stub.CreateSession(cb);
+      const call = this.stub.CreateSession(route(sessionId), cb);
       call.write({header: {sessionId, pointCount: xy.length / 2, options}});
       for (let i = 0; i < xy.length; i += this.chunkValues) {
         const points = {xy: Array.from(xy.slice(i, i + this.chunkValues))};
@@ -220,7 +243,7 @@ class Client {
   }
 
   async getSession(name) {
-    return toSession(await wrap((cb) => this.stub.GetSession({name}, cb)));
+    return toSession(await wrap((cb) => this.stub.GetSession({name}, route(name), cb)));
   }
 
   // Every session, following the pages.
@@ -238,7 +261,7 @@ class Client {
 
   deleteSession(name) {
     if (this.policies) this.policies.delete(name);
-    return wrap((cb) => this.stub.DeleteSession({name}, cb));
+    return wrap((cb) => this.stub.DeleteSession({name}, route(name), cb));
   }
 
   async openSteps(name) {
@@ -273,7 +296,7 @@ class Client {
     return new Promise((resolve, reject) => {
       const out = {step: 0, offsets: [0], ids: [], distances: [],
                    truncatedRows: [], clientIds: []};
-      const call = this.stub.Query(request);
+      const call = this.stub.Query(request, route(request.session));
       call.on('data', (chunk) => {
         out.step = Number(chunk.step);
         const base = out.ids.length + out.clientIds.length;
@@ -319,7 +342,7 @@ class Client {
     return new Promise((resolve, reject) => {
       // pointIds: the client ids of the positions (client-id sessions).
       const out = {step: 0, xy: [], triangles: [], pointIds: []};
-      const call = this.stub.ExportTriangulation({session});
+      const call = this.stub.ExportTriangulation({session}, route(session));
       call.on('data', (c) => {
         out.step = Number(c.step);
         for (const v of c.xy) out.xy.push(v);
@@ -332,4 +355,5 @@ class Client {
   }
 }
 
-module.exports = {Client, StepStream, KinetriError, status: grpc.status};
+module.exports = {Client, StepStream, KinetriError, SESSION_HEADER,
+                  newSessionId, status: grpc.status};

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Makes throw-away certificates for the security tests in DIR (openssl):
 #   ca.pem/ca.key            the test CA
-#   server.pem/server.key    server certificate (127.0.0.1, localhost) by ca
+#   server.pem/server.key    server certificate (127.0.0.1, localhost,
+#                            kinetri: deploy/proxy/haproxy.cfg) by ca
 #   client.pem/client.key    client certificate by ca (mutual TLS)
 #   other_ca.pem             an unrelated CA
 #   other_client.pem/.key    a client certificate by the unrelated CA
@@ -26,7 +27,7 @@ leaf() {  # name ca extensions
 }
 ca ca
 ca other_ca
-leaf server ca "subjectAltName=IP:127.0.0.1,DNS:localhost
+leaf server ca "subjectAltName=IP:127.0.0.1,DNS:localhost,DNS:kinetri
 extendedKeyUsage=serverAuth"
 leaf client ca "extendedKeyUsage=clientAuth"
 leaf other_client other_ca "extendedKeyUsage=clientAuth"

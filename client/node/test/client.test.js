@@ -199,3 +199,65 @@ test('TLS with client certificates and a bearer token', async () => {
     fs.rmSync(dir, {recursive: true, force: true});
   }
 });
+
+// Every call about a session names it in the `kinetri-session` header (what
+// a proxy in front of several servers hashes): checked against a stand-in
+// server that records the metadata of every call and fails it.
+test('routing header on every call about a session', async () => {
+  const grpc = require('@grpc/grpc-js');
+  const protoLoader = require('@grpc/proto-loader');
+  const path = require('node:path');
+  const proto = path.join(__dirname, '..', '..', '..', 'proto');
+  const def = protoLoader.loadSync(
+      path.join(proto, 'kinetri', 'v1', 'kinetri.proto'),
+      {includeDirs: [proto]});
+  const Service = grpc.loadPackageDefinition(def).kinetri.v1.KinetriService;
+  const seen = [];
+  const fail = {code: grpc.status.UNIMPLEMENTED, details: 'stand-in'};
+  const handlers = {};
+  for (const [name, m] of Object.entries(Service.service)) {
+    handlers[name] = (call, cb) => {
+      seen.push({name, key: call.metadata.get('kinetri-session')});
+      if (!m.responseStream) {
+        cb(fail);
+      } else {
+        call.emit('error', fail);
+      }
+    };
+  }
+  const server = new grpc.Server();
+  server.addService(Service.service, handlers);
+  const port = await new Promise((resolve, reject) =>
+    server.bindAsync('127.0.0.1:0', grpc.ServerCredentials.createInsecure(),
+                     (err, p) => (err ? reject(err) : resolve(p))));
+  const client = new Client(`127.0.0.1:${port}`);
+  const xy = new Float64Array(6);
+  try {
+    const calls = [
+      () => client.getSession('sessions/run-7'),
+      () => client.deleteSession('sessions/run-7'),
+      () => client.nearestAll('sessions/run-7'),
+      () => client.kNearest('sessions/run-7', 2, {positions: xy}),
+      () => client.exportTriangulation('sessions/run-7'),
+      () => client.createSession(xy, 'run-7'),
+    ];
+    for (const call of calls) {
+      seen.length = 0;
+      await assert.rejects(call());
+      assert.strictEqual(seen.length, 1);
+      assert.deepStrictEqual(seen[0].key, ['run-7'], seen[0].name);
+    }
+    // A session the caller does not name is named by the client, and the
+    // creation is routed by that name.
+    seen.length = 0;
+    await assert.rejects(client.createSession(xy));
+    assert.match(seen[0].key[0], /^s-[0-9a-f]{32}$/);
+    // Calls about no session carry no key.
+    seen.length = 0;
+    await assert.rejects(client.listSessions());
+    assert.deepStrictEqual(seen[0].key, []);
+  } finally {
+    client.close();
+    server.forceShutdown();
+  }
+});

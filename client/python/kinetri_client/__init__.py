@@ -8,6 +8,8 @@ The generated stubs (kinetri/v1/kinetri_pb2*.py) are produced at build time
 from proto/ (see client/python/CMakeLists.txt) and must be on sys.path.
 """
 
-from kinetri_client.client import Client, Neighbors, StepStream, KinetriError
+from kinetri_client.client import (SESSION_HEADER, Client, KinetriError,
+                                   Neighbors, StepStream, new_session_id)
 
-__all__ = ["Client", "Neighbors", "StepStream", "KinetriError"]
+__all__ = ["Client", "Neighbors", "StepStream", "KinetriError",
+           "SESSION_HEADER", "new_session_id"]

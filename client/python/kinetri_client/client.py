@@ -2,6 +2,7 @@
 
 import collections
 import os
+import secrets
 from dataclasses import dataclass
 from typing import Iterator, List, Optional, Sequence
 
@@ -101,7 +102,8 @@ class StepStream:
         self._next = first_step
         self._requests: List[pb.StepRequest] = []
         self._queue = _RequestQueue()
-        self._responses = stub.StreamSteps(iter(self._queue))
+        self._responses = stub.StreamSteps(iter(self._queue),
+                                           metadata=_route(session))
 
     @property
     def next_step(self) -> int:
@@ -212,6 +214,26 @@ class _CallDetails(
     pass
 
 
+#: Every call about one session carries its id in this header, so that a
+#: proxy in front of several servers (HAProxy hashing the header,
+#: deploy/proxy/haproxy.cfg) sends all of a session's calls to its owner.
+SESSION_HEADER = "kinetri-session"
+
+
+def _route(session: str):
+    """Call metadata routing a call to the owner of `session` (a name
+    "sessions/{id}" or an id)."""
+    key = session[len("sessions/"):] if session.startswith("sessions/") \
+        else session
+    return ((SESSION_HEADER, key),)
+
+
+def new_session_id() -> str:
+    """A new session id as the server would make one: "s-" + 128 random
+    bits in hex."""
+    return "s-" + secrets.token_hex(16)
+
+
 def _read(path: str, what: str) -> bytes:
     try:
         with open(path, "rb") as f:
@@ -282,6 +304,10 @@ class Client:
         policy = (pb.POINT_ID_POLICY_CLIENT if id_arr is not None
                   else pb.POINT_ID_POLICY_SEQUENTIAL)
 
+        # Named here when the caller does not, so that a proxy routes the
+        # creation by the same key as every later call (deploy/README.md).
+        session_id = session_id or new_session_id()
+
         def requests():
             yield pb.CreateSessionRequest(header=pb.CreateSessionHeader(
                 session_id=session_id, point_count=len(flat) // 2,
@@ -295,13 +321,15 @@ class Client:
                 yield pb.CreateSessionRequest(points=chunk)
 
         try:
-            return self._stub.CreateSession(requests())
+            return self._stub.CreateSession(requests(),
+                                            metadata=_route(session_id))
         except grpc.RpcError as e:
             _raise(e)
 
     def get_session(self, name: str) -> pb.Session:
         try:
-            return self._stub.GetSession(pb.GetSessionRequest(name=name))
+            return self._stub.GetSession(pb.GetSessionRequest(name=name),
+                                         metadata=_route(name))
         except grpc.RpcError as e:
             _raise(e)
 
@@ -321,7 +349,8 @@ class Client:
     def delete_session(self, name: str) -> None:
         self._policy.pop(name, None)
         try:
-            self._stub.DeleteSession(pb.DeleteSessionRequest(name=name))
+            self._stub.DeleteSession(pb.DeleteSessionRequest(name=name),
+                                     metadata=_route(name))
         except grpc.RpcError as e:
             _raise(e)
 
@@ -344,7 +373,8 @@ class Client:
         cids = []
         step, base, rows = 0, 0, 0
         try:
-            for chunk in self._stub.Query(request):
+            for chunk in self._stub.Query(request,
+                                          metadata=_route(request.session)):
                 step = chunk.step
                 off = np.asarray(chunk.offsets, dtype=np.uint64)
                 offsets.append(off[1:] + base)
@@ -407,7 +437,8 @@ class Client:
         xy, tris, pids, step = [], [], [], 0
         try:
             for chunk in self._stub.ExportTriangulation(
-                    pb.ExportTriangulationRequest(session=name)):
+                    pb.ExportTriangulationRequest(session=name),
+                    metadata=_route(name)):
                 step = chunk.step
                 xy.append(np.asarray(chunk.xy, dtype=np.float64))
                 tris.append(np.asarray(chunk.triangles, dtype=np.uint32))

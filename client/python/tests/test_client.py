@@ -269,3 +269,57 @@ class SecureClientTest(unittest.TestCase):
                     os.environ.pop(k, None)
                 else:
                     os.environ[k] = v
+
+
+class RoutingHeaderTest(unittest.TestCase):
+    """Every call about a session names it in the `kinetri-session` header
+    (what a proxy in front of several servers hashes); checked against a
+    stand-in server that records the metadata of every call."""
+
+    @classmethod
+    def setUpClass(cls):
+        from concurrent import futures
+        cls.seen = []
+        seen = cls.seen
+
+        class Recorder(grpc.GenericRpcHandler):
+            def service(self, details):
+                seen.append((details.method, dict(details.invocation_metadata)))
+                return None  # UNIMPLEMENTED
+
+        cls.server = grpc.server(futures.ThreadPoolExecutor(max_workers=2))
+        cls.server.add_generic_rpc_handlers((Recorder(),))
+        port = cls.server.add_insecure_port("127.0.0.1:0")
+        cls.server.start()
+        cls.target = f"127.0.0.1:{port}"
+
+    @classmethod
+    def tearDownClass(cls):
+        cls.server.stop(None)
+
+    def call(self, fn):
+        self.seen.clear()
+        with self.assertRaises(KinetriError):
+            fn()
+        self.assertEqual(len(self.seen), 1)
+        return self.seen[0]
+
+    def test_header_on_every_session_call(self):
+        pts = np.zeros((3, 2))
+        with Client(self.target) as c:
+            for fn in (lambda: c.get_session("sessions/run-7"),
+                       lambda: c.delete_session("sessions/run-7"),
+                       lambda: c.nearest_all("sessions/run-7"),
+                       lambda: c.knn("sessions/run-7", 2, points=pts),
+                       lambda: c.export("sessions/run-7"),
+                       lambda: c.create_session(pts, session_id="run-7")):
+                method, md = self.call(fn)
+                self.assertEqual(md.get("kinetri-session"), "run-7", method)
+            # A session the caller does not name is named by the client,
+            # and the creation is routed by that name.
+            method, md = self.call(lambda: c.create_session(pts))
+            self.assertRegex(md.get("kinetri-session", ""),
+                             r"^s-[0-9a-f]{32}$")
+            # Calls about no session carry no key.
+            method, md = self.call(c.list_sessions)
+            self.assertNotIn("kinetri-session", md)
