@@ -24,9 +24,46 @@ class DeployFilesTest(unittest.TestCase):
     def test_compose_services(self):
         compose = yaml.safe_load((DEPLOY / "compose.yaml").read_text())
         self.assertEqual(set(compose["services"]),
-                         {"kinetri", "prometheus", "grafana"})
-        self.assertEqual(compose["services"]["kinetri"]["build"]["dockerfile"],
-                         "deploy/Dockerfile")
+                         {"kinetri-0", "kinetri-1", "kinetri-2", "proxy",
+                          "prometheus", "grafana"})
+        for i in range(3):
+            k = compose["services"][f"kinetri-{i}"]
+            self.assertEqual(k["build"]["dockerfile"], "deploy/Dockerfile")
+            # Its own volume, and the name the proxy resolves.
+            self.assertIn(f"kinetri-data-{i}:/var/lib/kinetri", k["volumes"])
+            self.assertEqual(k["networks"]["default"]["aliases"],
+                             [f"kinetri-{i}.kinetri"])
+        proxy = compose["services"]["proxy"]
+        self.assertEqual(proxy["environment"]["KINETRI_REPLICA_DOMAIN"],
+                         "kinetri")
+        self.assertIn("./proxy/haproxy.cfg:/usr/local/etc/haproxy/haproxy.cfg:ro",
+                      proxy["volumes"])
+        prom = yaml.safe_load((DEPLOY / "prometheus" / "prometheus.yml").read_text())
+        self.assertEqual(prom["scrape_configs"][0]["static_configs"][0]["targets"],
+                         [f"kinetri-{i}:9464" for i in range(3)])
+
+    def test_proxy_routes_by_session(self):
+        """One replica per session: HAProxy hashes the header every client
+        sets, consistently, and never moves a key to another replica."""
+        cfg = (DEPLOY / "proxy" / "haproxy.cfg").read_text()
+        self.assertIn("balance hdr(kinetri-session)", cfg)
+        self.assertIn("hash-type consistent", cfg)
+        self.assertNotRegex(cfg, r"(?m)^\s*option redispatch")
+        self.assertNotRegex(cfg, r"(?m)^\s*server .* check")
+        servers = re.findall(r'(?m)^\s*server (kinetri-\d+) "kinetri-\d+\.'
+                             r'\$\{KINETRI_REPLICA_DOMAIN\}:50051" id (\d+)$', cfg)
+        self.assertEqual(servers, [(f"kinetri-{i}", str(i + 1)) for i in range(3)])
+        docs = list(yaml.safe_load_all((DEPLOY / "k8s" / "kinetri.yaml").read_text()))
+        sts = next(d for d in docs if d["kind"] == "StatefulSet")
+        self.assertEqual(sts["spec"]["replicas"], len(servers))
+        pdb = next(d for d in docs if d["kind"] == "PodDisruptionBudget")
+        self.assertEqual(pdb["spec"]["maxUnavailable"], 1)
+        for client in ("client/cpp/kinetri_client.h",
+                       "client/python/kinetri_client/client.py",
+                       "client/node/index.js"):
+            self.assertIn('"kinetri-session"' if client.endswith(".h") or
+                          client.endswith(".py") else "'kinetri-session'",
+                          (ROOT / client).read_text(), client)
 
     def test_dockerfile_uses_the_ci_setup_script(self):
         text = (DEPLOY / "Dockerfile").read_text()
@@ -48,8 +85,10 @@ class DeployFilesTest(unittest.TestCase):
     def test_k8s_probes_use_grpc_health(self):
         docs = list(yaml.safe_load_all((DEPLOY / "k8s" / "kinetri.yaml").read_text()))
         kinds = {d["kind"] for d in docs}
-        self.assertEqual(kinds, {"Service", "StatefulSet"})
-        service = next(d for d in docs if d["kind"] == "Service")
+        self.assertEqual(kinds, {"Service", "StatefulSet", "Deployment",
+                                 "PodDisruptionBudget"})
+        service = next(d for d in docs if d["kind"] == "Service"
+                       and d["metadata"]["name"] == "kinetri")
         self.assertEqual(service["spec"]["clusterIP"], "None")
         sts = next(d for d in docs if d["kind"] == "StatefulSet")
         container = sts["spec"]["template"]["spec"]["containers"][0]
@@ -92,10 +131,11 @@ class DeployFilesTest(unittest.TestCase):
                       for t in sts["spec"]["volumeClaimTemplates"]}
             self.assertIn(mounts["/var/lib/kinetri"], claims)
         compose = yaml.safe_load((DEPLOY / "compose.yaml").read_text())
-        k = compose["services"]["kinetri"]
-        self.assertTrue(k["read_only"])
-        self.assertEqual(k["user"], "10001:10001")
-        self.assertIn("./secrets/tls:/etc/kinetri/tls:ro", k["volumes"])
+        for i in range(3):
+            k = compose["services"][f"kinetri-{i}"]
+            self.assertTrue(k["read_only"])
+            self.assertEqual(k["user"], "10001:10001")
+            self.assertIn("./secrets/tls:/etc/kinetri/tls:ro", k["volumes"])
 
     def test_dashboard_metrics_exist(self):
         dash = json.loads((DEPLOY / "grafana" / "dashboards" / "kinetri.json").read_text())

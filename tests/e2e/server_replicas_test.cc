@@ -170,7 +170,7 @@ class ReplicasTest : public ::testing::Test {
                              "bind 127.0.0.1:" + std::to_string(proxy_port_));
     for (int i = 0; i < kReplicas; ++i) {
       const std::regex server("kinetri-" + std::to_string(i) +
-                              "\\.kinetri:50051");
+                              "\\.\\$\\{KINETRI_REPLICA_DOMAIN\\}:50051");
       ASSERT_TRUE(std::regex_search(cfg, server)) << "replica " << i;
       cfg = std::regex_replace(cfg, server,
                                "127.0.0.1:" + std::to_string(ports_[i]));
