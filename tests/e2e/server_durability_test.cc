@@ -245,7 +245,8 @@ TEST_F(DurabilityTest, CorruptAndTruncatedFiles) {
       for (size_t i = 0; i < d.size(); ++i) xy["cut"][i] += d[i];
     }
   }
-  ASSERT_EQ(server_->Stop(), 0);
+  // A crash (a clean stop would snapshot the journal away).
+  server_->Kill();
   const std::string sessions = dir_ + "/sessions/";
   fs::resize_file(sessions + "@cut/journal",
                   fs::file_size(sessions + "@cut/journal") - 5);
