@@ -41,10 +41,18 @@ absl::StatusOr<std::string> ReadFile(const std::string& path,
 
 std::string SessionRoutingKey(const std::string& name) {
   constexpr std::string_view kPrefix = "sessions/";
-  if (name.compare(0, kPrefix.size(), kPrefix) == 0) {
-    return name.substr(kPrefix.size());
+  std::string key = name.compare(0, kPrefix.size(), kPrefix) == 0
+                        ? name.substr(kPrefix.size())
+                        : name;
+  // Only what can be a session id ([a-z0-9-]{1,63}); anything else is
+  // refused by the server, and a huge name must not become a huge header.
+  if (key.empty() || key.size() > 63) return "";
+  for (const char c : key) {
+    if (!((c >= 'a' && c <= 'z') || (c >= '0' && c <= '9') || c == '-')) {
+      return "";
+    }
   }
-  return name;
+  return key;
 }
 
 std::string NewSessionId() {
@@ -105,9 +113,8 @@ Client::Client(const std::string& target, size_t chunk_points,
 void Client::Prepare(grpc::ClientContext* ctx,
                      const std::string& session) const {
   if (!token_.empty()) ctx->AddMetadata("authorization", "Bearer " + token_);
-  if (!session.empty()) {
-    ctx->AddMetadata(kSessionHeader, SessionRoutingKey(session));
-  }
+  const std::string key = SessionRoutingKey(session);
+  if (!key.empty()) ctx->AddMetadata(kSessionHeader, key);
 }
 
 absl::StatusOr<v1::Session> Client::CreateSession(
@@ -337,7 +344,8 @@ StepStream::StepStream(v1::KinetriService::Stub* stub, std::string session,
       next_step_(first_step),
       chunk_values_(std::max<size_t>(2, chunk_values & ~size_t{1})) {
   if (!token.empty()) ctx_.AddMetadata("authorization", "Bearer " + token);
-  ctx_.AddMetadata(kSessionHeader, SessionRoutingKey(session_));
+  const std::string key = SessionRoutingKey(session_);
+  if (!key.empty()) ctx_.AddMetadata(kSessionHeader, key);
   stream_ = stub->StreamSteps(&ctx_);
 }
 

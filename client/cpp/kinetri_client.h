@@ -95,7 +95,8 @@ struct ClientSecurity {
 // creation included, to the replica that owns it.
 inline constexpr char kSessionHeader[] = "kinetri-session";
 
-// The routing key of a session: its id ("sessions/{id}" -> "{id}").
+// The routing key of a session: its id ("sessions/{id}" -> "{id}"); "" (no
+// header) for what cannot be a session id ([a-z0-9-]{1,63}).
 std::string SessionRoutingKey(const std::string& name);
 
 // A new session id, as the server would make one: "s-" + 128 random bits in

@@ -1,10 +1,14 @@
 // Node.js client for the Kinetri proximity service (kinetri.v1).
 //
-// Positions are Float64Arrays of interleaved x, y; query results come back in
-// CSR form ({step, offsets, ids, distances, clientIds}). Chunking is hidden.
-// Point ids are exact: sequential ids are checked to lie in uint32 range
-// (never wrapped), client ids (POINT_ID_POLICY_CLIENT sessions) are 64-bit
-// and come back as BigInt.
+// Positions go in as interleaved x, y (a Float64Array or any array of
+// numbers); results come back as typed arrays: queries in CSR form ({step,
+// offsets: Float64Array, ids: Uint32Array, distances: Float64Array,
+// clientIds: BigUint64Array, truncatedRows}), exports as {step, xy:
+// Float64Array, triangles: Uint32Array, pointIds: BigUint64Array}. Chunking
+// is hidden. Point ids are exact: sequential ids are checked to lie in
+// uint32 range (never wrapped), client ids (POINT_ID_POLICY_CLIENT
+// sessions) are 64-bit (BigInt, Number or decimal string in; BigInt out).
+// Types: index.d.ts.
 'use strict';
 
 const crypto = require('crypto');
@@ -13,8 +17,11 @@ const path = require('path');
 const grpc = require('@grpc/grpc-js');
 const protoLoader = require('@grpc/proto-loader');
 
-const PROTO = path.join(__dirname, '..', '..', 'proto', 'kinetri', 'v1',
-                        'kinetri.proto');
+// The package ships the proto (copied by `npm pack`, see package.json); in
+// the source tree it is read from proto/ at the top.
+const PROTO_DIR = fs.existsSync(path.join(__dirname, 'proto')) ?
+  path.join(__dirname, 'proto') : path.join(__dirname, '..', '..', 'proto');
+const PROTO = path.join(PROTO_DIR, 'kinetri', 'v1', 'kinetri.proto');
 const CHUNK_VALUES = 2 * 131072;
 
 function loadService() {
@@ -22,7 +29,7 @@ function loadService() {
     // 64-bit fields as strings (exact), converted below: counters and
     // offsets to Number, client ids to BigInt.
     keepCase: false, longs: String, enums: String, defaults: true,
-    oneofs: true, includeDirs: [path.join(__dirname, '..', '..', 'proto')],
+    oneofs: true, includeDirs: [PROTO_DIR],
   });
   return grpc.loadPackageDefinition(def).kinetri.v1.KinetriService;
 }
@@ -36,8 +43,11 @@ const SESSION_HEADER = 'kinetri-session';
 // "sessions/{id}" or an id).
 function route(session) {
   const md = new grpc.Metadata();
-  md.set(SESSION_HEADER, session.startsWith('sessions/') ?
-    session.slice('sessions/'.length) : session);
+  const key = session.startsWith('sessions/') ?
+    session.slice('sessions/'.length) : session;
+  // Only what can be a session id: the server refuses anything else, and a
+  // huge name must not become a huge header.
+  if (/^[a-z0-9-]{1,63}$/.test(key)) md.set(SESSION_HEADER, key);
   return md;
 }
 
@@ -183,8 +193,12 @@ class Client {
   // mutual TLS), serverName (name expected in the server's certificate);
   // each defaults to KINETRI_TOKEN, KINETRI_CA, KINETRI_CERT, KINETRI_KEY,
   // KINETRI_TLS_SERVER_NAME. Unset: plaintext without a token.
+  // deadlineSeconds: limit of every call but step streams (which live as
+  // long as the simulation); 0: none. A call past it fails with
+  // DEADLINE_EXCEEDED and the server stops its work.
   constructor(target = '127.0.0.1:50051', {
     chunkPoints = CHUNK_VALUES / 2,
+    deadlineSeconds = 300,
     token = process.env.KINETRI_TOKEN || '',
     ca = process.env.KINETRI_CA || '',
     cert = process.env.KINETRI_CERT || '',
@@ -192,6 +206,7 @@ class Client {
     serverName = process.env.KINETRI_TLS_SERVER_NAME || '',
   } = {}) {
     this.chunkValues = 2 * chunkPoints;
+    this.deadlineSeconds = deadlineSeconds;
     const Service = loadService();
     const options = {'grpc.max_receive_message_length': 64 << 20};
     let credentials = grpc.credentials.createInsecure();
@@ -217,6 +232,12 @@ class Client {
 
   close() { this.stub.close(); }
 
+  // Call options with the client's deadline.
+  callOptions() {
+    return this.deadlineSeconds > 0 ?
+      {deadline: new Date(Date.now() + 1000 * this.deadlineSeconds)} : {};
+  }
+
   // ids (optional): one distinct 64-bit id per point (BigInt, Number or
   // decimal string): a POINT_ID_POLICY_CLIENT session.
   async createSession(xy, sessionId = '', {ids, threads = 0} = {}) {
@@ -230,7 +251,8 @@ class Client {
     // creation by the same key as every later call (deploy/README.md).
     sessionId = sessionId || newSessionId();
     const s = await wrap((cb) => {
-      const call = this.stub.CreateSession(route(sessionId), cb);
+      const call = this.stub.CreateSession(route(sessionId), this.callOptions(),
+                                           cb);
       call.write({header: {sessionId, pointCount: xy.length / 2, options}});
       for (let i = 0; i < xy.length; i += this.chunkValues) {
         const points = {xy: Array.from(xy.slice(i, i + this.chunkValues))};
@@ -243,7 +265,8 @@ class Client {
   }
 
   async getSession(name) {
-    return toSession(await wrap((cb) => this.stub.GetSession({name}, route(name), cb)));
+    return toSession(await wrap((cb) => this.stub.GetSession({name}, route(name),
+                                                    this.callOptions(), cb)));
   }
 
   // Every session, following the pages.
@@ -252,16 +275,18 @@ class Client {
     let pageToken = '';
     do {
       const r = await wrap((cb) =>
-        this.stub.ListSessions({pageSize: 100, pageToken}, cb));
+        this.stub.ListSessions({pageSize: 100, pageToken},
+                               this.callOptions(), cb));
       for (const s of r.sessions) out.push(toSession(s));
       pageToken = r.nextPageToken;
     } while (pageToken);
     return out;
   }
 
-  deleteSession(name) {
+  async deleteSession(name) {
     if (this.policies) this.policies.delete(name);
-    return wrap((cb) => this.stub.DeleteSession({name}, route(name), cb));
+    await wrap((cb) => this.stub.DeleteSession({name}, route(name),
+                                               this.callOptions(), cb));
   }
 
   async openSteps(name) {
@@ -296,7 +321,8 @@ class Client {
     return new Promise((resolve, reject) => {
       const out = {step: 0, offsets: [0], ids: [], distances: [],
                    truncatedRows: [], clientIds: []};
-      const call = this.stub.Query(request, route(request.session));
+      const call = this.stub.Query(request, route(request.session),
+                                   this.callOptions());
       call.on('data', (chunk) => {
         out.step = Number(chunk.step);
         const base = out.ids.length + out.clientIds.length;
@@ -312,7 +338,14 @@ class Client {
         }
       });
       call.on('error', (err) => reject(new KinetriError(err)));
-      call.on('end', () => resolve(out));
+      call.on('end', () => resolve({
+        step: out.step,
+        offsets: Float64Array.from(out.offsets),
+        ids: Uint32Array.from(out.ids),
+        distances: Float64Array.from(out.distances),
+        truncatedRows: Float64Array.from(out.truncatedRows),
+        clientIds: BigUint64Array.from(out.clientIds),
+      }));
     });
   }
 
@@ -342,7 +375,8 @@ class Client {
     return new Promise((resolve, reject) => {
       // pointIds: the client ids of the positions (client-id sessions).
       const out = {step: 0, xy: [], triangles: [], pointIds: []};
-      const call = this.stub.ExportTriangulation({session}, route(session));
+      const call = this.stub.ExportTriangulation({session}, route(session),
+                                                 this.callOptions());
       call.on('data', (c) => {
         out.step = Number(c.step);
         for (const v of c.xy) out.xy.push(v);
@@ -350,7 +384,12 @@ class Client {
         for (const v of c.pointIds) out.pointIds.push(BigInt(v));
       });
       call.on('error', (err) => reject(new KinetriError(err)));
-      call.on('end', () => resolve(out));
+      call.on('end', () => resolve({
+        step: out.step,
+        xy: Float64Array.from(out.xy),
+        triangles: Uint32Array.from(out.triangles),
+        pointIds: BigUint64Array.from(out.pointIds),
+      }));
     });
   }
 }

@@ -78,11 +78,14 @@ test('create, step, query against brute force, export, errors', async () => {
         const db = (xy[2 * b] - xy[2 * i]) ** 2 + (xy[2 * b + 1] - xy[2 * i + 1]) ** 2;
         return da - db;
       });
-      assert.deepStrictEqual(knn.ids.slice(knn.offsets[row], knn.offsets[row + 1]),
+      assert.deepStrictEqual([...knn.ids.slice(knn.offsets[row], knn.offsets[row + 1])],
                              order.slice(0, 4));
     });
 
     const mesh = await client.exportTriangulation(s.name);
+    assert.ok(mesh.xy instanceof Float64Array);
+    assert.ok(mesh.triangles instanceof Uint32Array);
+    assert.ok(nn.ids instanceof Uint32Array && nn.distances instanceof Float64Array);
     assert.strictEqual(mesh.xy.length, 2 * n);
     assert.ok(mesh.triangles.length > 3 * n);
 
@@ -128,7 +131,7 @@ test('client ids: 64-bit, exact, end to end; sequential ids never wrap',
         }
       }
       d.sort((a, b) => a[0] - b[0]);
-      assert.deepStrictEqual(knn.clientIds.slice(knn.offsets[row], knn.offsets[row + 1]),
+      assert.deepStrictEqual([...knn.clientIds.slice(knn.offsets[row], knn.offsets[row + 1])],
                              [ids[d[0][1]], ids[d[1][1]]]);
     }
     const steps = await client.openSteps(s.name);
@@ -136,7 +139,7 @@ test('client ids: 64-bit, exact, end to end; sequential ids never wrap',
     assert.strictEqual(ack.step, 1);
     await steps.close();
     const mesh = await client.exportTriangulation(s.name);
-    assert.deepStrictEqual(mesh.pointIds, ids);
+    assert.deepStrictEqual([...mesh.pointIds], ids);
     assert.deepStrictEqual([mesh.xy[10], mesh.xy[11]], [0.5, 0.5]);
     await assert.rejects(client.kNearest(s.name, 1, {ids: [12345n]}),
                          (e) => e.code === status.NOT_FOUND);
@@ -218,6 +221,7 @@ test('routing header on every call about a session', async () => {
   for (const [name, m] of Object.entries(Service.service)) {
     handlers[name] = (call, cb) => {
       seen.push({name, key: call.metadata.get('kinetri-session')});
+      if (call.request && call.request.name === 'sessions/hang') return;
       if (!m.responseStream) {
         cb(fail);
       } else {
@@ -256,6 +260,17 @@ test('routing header on every call about a session', async () => {
     seen.length = 0;
     await assert.rejects(client.listSessions());
     assert.deepStrictEqual(seen[0].key, []);
+    // Nor do names that cannot be a session id (huge or odd).
+    seen.length = 0;
+    await assert.rejects(client.getSession('sessions/' + 'x'.repeat(100000)));
+    assert.deepStrictEqual(seen[0].key, []);
+    // Every call but step streams has a deadline.
+    const impatient = new Client(`127.0.0.1:${port}`, {deadlineSeconds: 0.3});
+    const t0 = Date.now();
+    await assert.rejects(impatient.getSession('sessions/hang'),
+                         (e) => e.code === status.DEADLINE_EXCEEDED);
+    assert.ok(Date.now() - t0 < 5000);
+    impatient.close();
   } finally {
     client.close();
     server.forceShutdown();

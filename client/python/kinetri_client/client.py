@@ -2,6 +2,7 @@
 
 import collections
 import os
+import re
 import secrets
 from dataclasses import dataclass
 from typing import Iterator, List, Optional, Sequence
@@ -218,6 +219,7 @@ class _CallDetails(
 #: proxy in front of several servers (HAProxy hashing the header,
 #: deploy/proxy/haproxy.cfg) sends all of a session's calls to its owner.
 SESSION_HEADER = "kinetri-session"
+_SESSION_ID = re.compile(r"[a-z0-9-]{1,63}")
 
 
 def _route(session: str):
@@ -225,6 +227,10 @@ def _route(session: str):
     "sessions/{id}" or an id)."""
     key = session[len("sessions/"):] if session.startswith("sessions/") \
         else session
+    # Only what can be a session id: the server refuses anything else, and
+    # a huge name must not become a huge header.
+    if not _SESSION_ID.fullmatch(key):
+        return ()
     return ((SESSION_HEADER, key),)
 
 

@@ -323,3 +323,7 @@ class RoutingHeaderTest(unittest.TestCase):
             # Calls about no session carry no key.
             method, md = self.call(c.list_sessions)
             self.assertNotIn("kinetri-session", md)
+            # Nor do names that cannot be a session id (huge or odd).
+            method, md = self.call(
+                lambda: c.get_session("sessions/" + "x" * 100000))
+            self.assertNotIn("kinetri-session", md)
