@@ -32,7 +32,7 @@ install(EXPORT KinetriTargets NAMESPACE kinetri::
   DESTINATION ${KINETRI_CMAKE_DIR})
 
 set(KINETRI_CONFIG_WITH_SERVICE ${KINETRI_BUILD_SERVICE})
-configure_package_config_file(${PROJECT_SOURCE_DIR}/cmake/KinetriConfig.cmake.in
+configure_package_config_file(${PROJECT_SOURCE_DIR}/deploy/cmake/KinetriConfig.cmake.in
   ${PROJECT_BINARY_DIR}/KinetriConfig.cmake
   INSTALL_DESTINATION ${KINETRI_CMAKE_DIR})
 write_basic_package_version_file(${PROJECT_BINARY_DIR}/KinetriConfigVersion.cmake
