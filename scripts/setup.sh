@@ -10,6 +10,7 @@ PACKAGES=(
   libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler
   prometheus-cpp-dev
   python3 python3-grpcio python3-protobuf python3-numpy python3-yaml
+  python3-venv python3-pip python3-setuptools python3-wheel python3-build
   libssl-dev openssl
   redis-server gnuplot-nox
   haproxy  # tests/e2e/server_replicas_test.cc: deploy/proxy/haproxy.cfg

@@ -7,7 +7,7 @@
 set -euo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
 command -v node >/dev/null 2>&1 || { echo "node not found: skipping"; exit 77; }
-server=${KINETRI_SERVER:-$here/../../build/server/kinetri-server}
+server=$(realpath "${KINETRI_SERVER:-$here/../../build/server/kinetri-server}")
 tmp=$(mktemp -d /tmp/kinetri-npm-XXXXXX)
 trap 'rm -rf "$tmp"' EXIT
 quiet=(--no-audit --no-fund --loglevel=error)

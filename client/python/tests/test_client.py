@@ -327,3 +327,141 @@ class RoutingHeaderTest(unittest.TestCase):
             method, md = self.call(
                 lambda: c.get_session("sessions/" + "x" * 100000))
             self.assertNotIn("kinetri-session", md)
+
+
+class DeadlineAndRetryTest(unittest.TestCase):
+    """Deadlines on every call and retries of the calls that change
+    nothing, against a stand-in server whose GetSession fails with
+    UNAVAILABLE a given number of times, or never answers."""
+
+    @classmethod
+    def setUpClass(cls):
+        import threading
+        from concurrent import futures
+        from kinetri_client._common import pb
+        cls.failures = 0
+        cls.calls = 0
+        cls.release = threading.Event()
+        test = cls
+
+        def get_session(request, context):
+            test.calls += 1
+            if request.name == "sessions/hang":
+                test.release.wait(10)
+                context.abort(grpc.StatusCode.CANCELLED, "released")
+            if test.calls <= test.failures:
+                context.abort(grpc.StatusCode.UNAVAILABLE, "restarting")
+            return pb.Session(name=request.name, step=7)
+
+        handler = grpc.method_handlers_generic_handler(
+            "kinetri.v1.KinetriService",
+            {"GetSession": grpc.unary_unary_rpc_method_handler(
+                get_session,
+                request_deserializer=pb.GetSessionRequest.FromString,
+                response_serializer=pb.Session.SerializeToString)})
+        cls.server = grpc.server(futures.ThreadPoolExecutor(max_workers=4))
+        cls.server.add_generic_rpc_handlers((handler,))
+        port = cls.server.add_insecure_port("127.0.0.1:0")
+        cls.server.start()
+        cls.target = f"127.0.0.1:{port}"
+
+    @classmethod
+    def tearDownClass(cls):
+        cls.release.set()
+        cls.server.stop(None)
+
+    def test_unavailable_is_retried(self):
+        type(self).calls, type(self).failures = 0, 2
+        with Client(self.target) as c:
+            self.assertEqual(c.get_session("sessions/a").step, 7)
+        self.assertEqual(self.calls, 3)
+
+    def test_retries_give_up(self):
+        type(self).calls, type(self).failures = 0, 100
+        with Client(self.target) as c:
+            with self.assertRaises(KinetriError) as e:
+                c.get_session("sessions/a")
+        self.assertEqual(e.exception.code, grpc.StatusCode.UNAVAILABLE)
+        self.assertEqual(self.calls, 4)  # maxAttempts
+
+    def test_deadline(self):
+        import time
+        with Client(self.target, deadline=0.3) as c:
+            t0 = time.monotonic()
+            with self.assertRaises(KinetriError) as e:
+                c.get_session("sessions/hang")
+        self.assertEqual(e.exception.code, grpc.StatusCode.DEADLINE_EXCEEDED)
+        self.assertLess(time.monotonic() - t0, 5)
+
+    def test_async_deadline_and_retry(self):
+        import asyncio
+        from kinetri_client.aio import AsyncClient
+
+        async def run():
+            type(self).calls, type(self).failures = 0, 1
+            async with AsyncClient(self.target) as c:
+                self.assertEqual((await c.get_session("sessions/a")).step, 7)
+            self.assertEqual(self.calls, 2)
+            async with AsyncClient(self.target, deadline=0.3) as c:
+                with self.assertRaises(KinetriError) as e:
+                    await c.get_session("sessions/hang")
+            self.assertEqual(e.exception.code,
+                             grpc.StatusCode.DEADLINE_EXCEEDED)
+        asyncio.run(run())
+
+
+class AsyncClientTest(unittest.TestCase):
+    """kinetri_client.aio.AsyncClient end to end against the real server,
+    checked against brute force."""
+
+    @classmethod
+    def setUpClass(cls):
+        cls.proc, cls.target = start_server()
+
+    @classmethod
+    def tearDownClass(cls):
+        cls.proc.terminate()
+        cls.proc.wait(timeout=30)
+
+    def test_lifecycle(self):
+        import asyncio
+        from kinetri_client.aio import AsyncClient
+        rng = np.random.default_rng(5)
+        pts = rng.random((800, 2))
+        deltas = rng.normal(0, 1e-3, (800, 2))
+
+        async def run():
+            async with AsyncClient(self.target, chunk_points=300) as c:
+                s = await c.create_session(pts, session_id="py-async")
+                async with await c.open_steps(s.name) as steps:
+                    ack = await steps.move_by(deltas)
+                    self.assertEqual(ack.step, 1)
+                    ack = await steps.move_to([[0.5, 0.5]], ids=[3])
+                    self.assertEqual(ack.step, 2)
+                moved = pts + deltas
+                moved[3] = [0.5, 0.5]
+                step, positions, triangles = await c.export(s.name)
+                self.assertEqual(step, 2)
+                np.testing.assert_array_equal(positions, moved)
+                nn = await c.nearest_all(s.name)
+                d = ((moved[:, None, :] - moved[None, :, :]) ** 2).sum(-1)
+                np.fill_diagonal(d, np.inf)
+                np.testing.assert_array_equal(
+                    [nn.row(i)[0] for i in range(len(nn))], d.argmin(1))
+                near = await c.radius(s.name, 0.05, points=[[0.5, 0.5]])
+                want = np.flatnonzero(((moved - 0.5) ** 2).sum(1) <= 0.05**2)
+                self.assertEqual(sorted(near.row(0)), sorted(want))
+                names = [x.name for x in await c.list_sessions()]
+                self.assertIn(s.name, names)
+                await c.delete_session(s.name)
+                with self.assertRaises(KinetriError) as e:
+                    await c.get_session(s.name)
+                self.assertEqual(e.exception.code, grpc.StatusCode.NOT_FOUND)
+                # A step the server refuses ends the stream with its status.
+                s = await c.create_session(pts, session_id="py-async-2")
+                steps = await c.open_steps(s.name)
+                with self.assertRaises(KinetriError) as e:
+                    await steps.move_by(np.full((800, 2), np.nan))
+                self.assertEqual(e.exception.code,
+                                 grpc.StatusCode.INVALID_ARGUMENT)
+        asyncio.run(run())
