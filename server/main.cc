@@ -349,10 +349,16 @@ int main(int argc, char** argv) {
                    absl::GetFlag(FLAGS_health_listen).c_str());
       return 1;
     }
+    health_server->GetHealthCheckService()->SetServingStatus(
+        kinetri::server::kServiceName, true);
     health_server->GetHealthCheckService()->SetServingStatus(true);
     std::printf("kinetri-server: health on port %d (%s, plaintext)\n",
                 health_port, absl::GetFlag(FLAGS_health_listen).c_str());
   }
+  // Probes may ask for the whole server ("") or the service by name;
+  // SetServingStatus(bool) later flips both.
+  server->GetHealthCheckService()->SetServingStatus(
+      kinetri::server::kServiceName, true);
   server->GetHealthCheckService()->SetServingStatus(true);
   std::printf("kinetri-server: listening on port %d (%s)\n", port,
               absl::GetFlag(FLAGS_listen).c_str());

@@ -491,7 +491,7 @@ grpc::Status KinetriServiceImpl::ListSessions(
       req->page_size() == 0 ? 50 : std::min<size_t>(req->page_size(), 1000);
   std::string after;
   if (!req->page_token().empty()) {
-    auto id = ParseSessionName(req->page_token(), "page_token");
+    auto id = DecodePageToken(req->page_token());
     if (!id.ok()) return rpc.Done(ToGrpc(id.status()));
     after = *id;
   }
@@ -500,7 +500,7 @@ grpc::Status KinetriServiceImpl::ListSessions(
     *response->add_sessions() = Describe(*list[i]);
   }
   if (list.size() > page) {
-    response->set_next_page_token(list[page - 1]->name());
+    response->set_next_page_token(EncodePageToken(list[page - 1]->id()));
   }
   return rpc.Done(grpc::Status::OK);
 }

@@ -18,6 +18,9 @@
 
 namespace kinetri::server {
 
+// The gRPC service's full name (health checks may name it).
+inline constexpr char kServiceName[] = "kinetri.v1.KinetriService";
+
 class KinetriServiceImpl final : public v1::KinetriService::Service {
  public:
   // `watchdog` cancels step and creation streams that stop sending;

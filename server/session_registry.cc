@@ -184,6 +184,27 @@ absl::StatusOr<uint32_t> Session::IndexOf(uint64_t client_id,
   return it->second;
 }
 
+namespace {
+constexpr char kPageTokenPrefix[] = "kinetri.page.v1:";
+constexpr size_t kPageTokenPrefixSize = sizeof(kPageTokenPrefix) - 1;
+}  // namespace
+
+std::string EncodePageToken(const std::string& after_id) {
+  return absl::WebSafeBase64Escape(absl::StrCat(kPageTokenPrefix, after_id));
+}
+
+absl::StatusOr<std::string> DecodePageToken(const std::string& token) {
+  std::string raw;
+  if (token.size() > 256 || !absl::WebSafeBase64Unescape(token, &raw) ||
+      !absl::StartsWith(raw, kPageTokenPrefix) ||
+      !ValidSessionId(raw.substr(kPageTokenPrefixSize))) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("page_token: \"", EchoForError(token),
+                     "\" is not a token from ListSessions"));
+  }
+  return raw.substr(kPageTokenPrefixSize);
+}
+
 bool ValidSessionId(const std::string& id) {
   if (id.empty() || id.size() > 63) return false;
   for (char c : id) {

@@ -199,6 +199,10 @@ absl::StatusOr<std::string> ParseSessionName(const std::string& name,
 std::string EchoForError(const std::string& value);
 // Session ids: [a-z0-9-]{1,63}.
 bool ValidSessionId(const std::string& id);
+// ListSessions paging tokens: opaque to clients (web-safe base64 of a
+// versioned position), INVALID_ARGUMENT for anything not made here.
+std::string EncodePageToken(const std::string& after_id);
+absl::StatusOr<std::string> DecodePageToken(const std::string& token);
 
 }  // namespace kinetri::server
 

@@ -8,6 +8,8 @@
 #include <csignal>
 #include <mutex>
 #include <random>
+#include <set>
+#include <string>
 #include <thread>
 
 #include "absl/strings/str_cat.h"
@@ -423,11 +425,56 @@ TEST(E2eShutdown, HealthTurnsNotServingWhileDraining) {
   testing::ServerProcess server(KINETRI_SERVER_BINARY,
                                 {"--drain_delay_seconds=3"});
   ASSERT_TRUE(server.ok());
+  // The whole server ("") and the service by name answer alike.
+  const std::string kService = "kinetri.v1.KinetriService";
   EXPECT_EQ(testing::HealthStatus(server.target()), 1);
+  EXPECT_EQ(testing::HealthStatus(server.target(), kService), 1);
+  EXPECT_EQ(testing::HealthStatus(server.target(), "no.such.Service"), -1);
   server.Signal(SIGTERM);
   std::this_thread::sleep_for(std::chrono::milliseconds(800));
   EXPECT_EQ(testing::HealthStatus(server.target()), 2);
+  EXPECT_EQ(testing::HealthStatus(server.target(), kService), 2);
   EXPECT_EQ(server.Stop(), 0);
+}
+
+// Paging tokens are opaque (no session name shows through) and only tokens
+// the server made are taken.
+TEST_F(E2eTest, ListSessionsPagesWithOpaqueTokens) {
+  std::set<std::string> created;
+  for (int i = 0; i < 4; ++i) {  // the fixture allows 4 sessions
+    auto s =
+        client_->CreateSession(testing::UniformXY(20, i), v1::SessionOptions(),
+                               "page-" + std::to_string(i));
+    ASSERT_TRUE(s.ok()) << s.status();
+    created.insert(s->name());
+  }
+  std::set<std::string> listed;
+  std::string token;
+  int pages = 0;
+  do {
+    grpc::ClientContext ctx;
+    v1::ListSessionsRequest req;
+    req.set_page_size(3);
+    req.set_page_token(token);
+    v1::ListSessionsResponse resp;
+    ASSERT_TRUE(client_->stub()->ListSessions(&ctx, req, &resp).ok());
+    for (const auto& s : resp.sessions()) {
+      EXPECT_TRUE(listed.insert(s.name()).second) << "listed twice";
+    }
+    token = resp.next_page_token();
+    EXPECT_EQ(token.find("page-"), std::string::npos) << token;
+    ++pages;
+  } while (!token.empty());
+  EXPECT_EQ(listed, created);
+  EXPECT_EQ(pages, 2);
+  for (const std::string bad : {"sessions/page-1", "page-1", "%%%"}) {
+    grpc::ClientContext ctx;
+    v1::ListSessionsRequest req;
+    req.set_page_token(bad);
+    v1::ListSessionsResponse resp;
+    const grpc::Status st = client_->stub()->ListSessions(&ctx, req, &resp);
+    EXPECT_EQ(st.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << bad;
+  }
 }
 
 TEST_F(E2eTest, GracefulShutdown) { EXPECT_EQ(server_->Stop(), 0); }

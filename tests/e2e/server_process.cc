@@ -150,14 +150,20 @@ std::string HttpGet(int port, const std::string& path) {
 // grpc.health.v1.Health/Check for the whole server, via the generic stub
 // (the health proto is not installed): returns 1 SERVING, 2 NOT_SERVING,
 // -1 if the call failed.
-int HealthStatus(const std::string& target) {
+int HealthStatus(const std::string& target, const std::string& service) {
   auto channel =
       grpc::CreateChannel(target, grpc::InsecureChannelCredentials());
   grpc::GenericStub stub(channel);
   grpc::ClientContext ctx;
   ctx.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(5));
-  grpc::Slice empty;  // an empty HealthCheckRequest (service "")
-  grpc::ByteBuffer request(&empty, 1), response;
+  // HealthCheckRequest { string service = 1; } (names under 128 bytes).
+  std::string bytes_out;
+  if (!service.empty()) {
+    bytes_out =
+        std::string("\x0a", 1) + static_cast<char>(service.size()) + service;
+  }
+  grpc::Slice slice(bytes_out);
+  grpc::ByteBuffer request(&slice, 1), response;
   std::mutex mu;
   std::condition_variable cv;
   bool done = false;

@@ -49,9 +49,9 @@ class ServerProcess {
 // n uniform random points in the unit square, packed x, y.
 std::vector<double> UniformXY(size_t n, uint64_t seed);
 
-// grpc.health.v1.Health/Check for the whole server on a plaintext target:
-// 1 SERVING, 2 NOT_SERVING, -1 if the call failed.
-int HealthStatus(const std::string& target);
+// grpc.health.v1.Health/Check of `service` ("": the whole server) on a
+// plaintext target: 1 SERVING, 2 NOT_SERVING, -1 if the call failed.
+int HealthStatus(const std::string& target, const std::string& service = "");
 
 // GET http://127.0.0.1:port/path; returns the body ("" on failure).
 std::string HttpGet(int port, const std::string& path);
