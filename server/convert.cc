@@ -26,6 +26,16 @@ absl::Status StepAssembler::Add(const v1::StepRequest& chunk) {
     return absl::InvalidArgumentError(
         "ids, client_ids: a chunk names points with one of them, not both");
   }
+  if (chunk.request_id().size() > 128) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "request_id: ", chunk.request_id().size(), " bytes; at most 128"));
+  }
+  if (!chunk.request_id().empty()) {
+    if (!request_id_.empty() && chunk.request_id() != request_id_) {
+      return absl::InvalidArgumentError("request_id: changes within one step");
+    }
+    request_id_ = chunk.request_id();
+  }
   const bool client = chunk.client_ids_size() > 0;
   const bool sparse = chunk.ids_size() > 0 || client;
   if (chunks_ == 0) {
@@ -88,6 +98,7 @@ absl::StatusOr<core::DisplacementBatch> StepAssembler::Take(
   ids_.clear();
   values_.clear();
   chunks_ = 0;
+  request_id_.clear();
   if (client && !session.has_client_ids()) {
     return absl::InvalidArgumentError(
         "client_ids: this session numbers points sequentially; use ids");

@@ -30,6 +30,8 @@ class StepAssembler {
   // Values (xy pairs) received so far for this step.
   uint64_t size() const { return values_.size(); }
   uint64_t step() const { return step_; }
+  // The step's request_id ("" if none was sent).
+  const std::string& request_id() const { return request_id_; }
   // The assembled batch, with client ids resolved through `session`
   // (NOT_FOUND for an unknown one, INVALID_ARGUMENT for the wrong kind of
   // ids for its policy); resets the assembler.
@@ -38,6 +40,7 @@ class StepAssembler {
  private:
   uint64_t chunks_ = 0;
   uint64_t step_ = 0;
+  std::string request_id_;
   bool sparse_ = false;
   v1::DisplacementMode mode_ = v1::DISPLACEMENT_MODE_DELTA;
   bool client_ = false;

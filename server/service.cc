@@ -576,6 +576,7 @@ grpc::Status KinetriServiceImpl::StreamSteps(
     }
     if (!req.end_of_step()) continue;
     const uint64_t step = assembler.step();
+    const std::string request_id = assembler.request_id();
     absl::StatusOr<core::DisplacementBatch> batch = assembler.Take(*session);
     if (!batch.ok()) return rpc.Done(ToGrpc(batch.status()));
     v1::StepResponse resp;
@@ -583,10 +584,13 @@ grpc::Status KinetriServiceImpl::StreamSteps(
     // the session stays at its previous step.
     const core::CancelToken cancel([ctx] { return ctx->IsCancelled(); },
                                    ToSteadyDeadline(ctx->deadline()));
-    auto report = session->ApplyStep(step, *batch, &cancel);
+    bool replayed = false;
+    auto report = session->ApplyStep(step, *batch, &cancel, nullptr, request_id,
+                                     &replayed);
     session->Touch();
     if (!report.ok()) return rpc.Done(ToGrpc(report.status()));
-    metrics_->ObserveStep(session->backend(), *report);
+    // A resent step (same request_id) gets its original acknowledgement.
+    if (!replayed) metrics_->ObserveStep(session->backend(), *report);
     resp.set_step(step);
     *resp.mutable_stats() = ToProto(*report);
     if (!stream->Write(resp)) break;  // client went away; step is applied

@@ -47,12 +47,22 @@ Session::Snapshot Session::Read() const {
 
 absl::StatusOr<core::StepReport> Session::ApplyStep(
     uint64_t step, const core::DisplacementBatch& batch,
-    const core::CancelToken* cancel, bool* copied) {
+    const core::CancelToken* cancel, bool* copied,
+    const std::string& request_id, bool* replayed) {
   absl::MutexLock write_lock(&write_mu_);
   std::shared_ptr<core::Triangulation> target;
   std::shared_ptr<const core::Triangulation> source;
+  if (replayed) *replayed = false;
   {
     absl::MutexLock lock(&mu_);
+    if (step <= step_ && !request_id.empty()) {
+      for (const Applied& a : applied_) {
+        if (a.step == step && a.request_id == request_id) {
+          if (replayed) *replayed = true;
+          return a.report;
+        }
+      }
+    }
     if (step != step_ + 1) {
       return absl::FailedPreconditionError(
           absl::StrCat("step: got ", step, ", expected ", step_ + 1,
@@ -132,6 +142,10 @@ absl::StatusOr<core::StepReport> Session::ApplyStep(
     if (report.ok()) {
       step_ = step;
       update_time_ = absl::Now();
+      if (!request_id.empty()) {
+        applied_.push_back({step, request_id, *report});
+        if (applied_.size() > kRememberedSteps) applied_.pop_front();
+      }
     }
   }
   if (report.ok() && journal_ != nullptr && journal_->CompactionDue()) {

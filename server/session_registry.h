@@ -4,6 +4,7 @@
 
 #include <atomic>
 #include <cstdint>
+#include <deque>
 #include <map>
 #include <memory>
 #include <string>
@@ -113,9 +114,16 @@ class Session {
   // because readers held the current step. When the memory budget has no
   // room for a copy, the step waits for the readers instead (new readers
   // wait behind it).
+  //
+  // `request_id` (optional) names the step: a step already applied under
+  // the same number and request_id (among the last kRememberedSteps) is
+  // not applied again; its original report is returned and `*replayed`
+  // (optional) is set.
   absl::StatusOr<core::StepReport> ApplyStep(
       uint64_t step, const core::DisplacementBatch& batch,
-      const core::CancelToken* cancel, bool* copied = nullptr);
+      const core::CancelToken* cancel, bool* copied = nullptr,
+      const std::string& request_id = "", bool* replayed = nullptr);
+  static constexpr size_t kRememberedSteps = 64;
 
  private:
   // Declared first, destroyed last: once the triangulation's memory is
@@ -145,6 +153,13 @@ class Session {
   std::shared_ptr<core::Triangulation> current_ ABSL_GUARDED_BY(mu_);
   bool in_place_ ABSL_GUARDED_BY(mu_) = false;  // a step moves current_
   uint64_t step_ ABSL_GUARDED_BY(mu_) = 0;
+  // The last kRememberedSteps steps applied with a request_id.
+  struct Applied {
+    uint64_t step;
+    std::string request_id;
+    core::StepReport report;
+  };
+  std::deque<Applied> applied_ ABSL_GUARDED_BY(mu_);
   absl::Time update_time_ ABSL_GUARDED_BY(mu_);
 };
 

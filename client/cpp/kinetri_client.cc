@@ -205,10 +205,13 @@ absl::Status Client::DeleteSession(const std::string& name) {
 }
 
 absl::StatusOr<std::unique_ptr<StepStream>> Client::OpenSteps(
-    const std::string& name) {
-  auto s = GetSession(name);
-  if (!s.ok()) return s.status();
-  return std::make_unique<StepStream>(stub_.get(), name, s->step() + 1,
+    const std::string& name, uint64_t first_step) {
+  if (first_step == 0) {
+    auto s = GetSession(name);
+    if (!s.ok()) return s.status();
+    first_step = s->step() + 1;
+  }
+  return std::make_unique<StepStream>(stub_.get(), name, first_step,
                                       2 * chunk_points_, token_);
 }
 
@@ -391,7 +394,10 @@ absl::StatusOr<v1::StepResponse> StepStream::Send(
   bool first = true;
   do {
     v1::StepRequest req;
-    if (first) req.set_session(session_);
+    if (first) {
+      req.set_session(session_);
+      req.set_request_id(next_request_id_);
+    }
     first = false;
     req.set_step(next_step_);
     req.set_mode(mode);
@@ -408,6 +414,7 @@ absl::StatusOr<v1::StepResponse> StepStream::Send(
     i = end;
     if (!stream_->Write(req)) break;
   } while (i < xy.size());
+  next_request_id_.clear();
   v1::StepResponse resp;
   if (!stream_->Read(&resp)) {
     finished_ = true;

@@ -57,6 +57,12 @@ class StepStream {
   // Absolute positions (dense if ids is empty).
   absl::StatusOr<v1::StepResponse> MoveTo(const std::vector<uint32_t>& ids,
                                           const std::vector<double>& xy);
+  // Names the next step (StepRequest.request_id): resending a step the
+  // server already applied under this name (its acknowledgement was lost)
+  // returns the original acknowledgement and applies nothing.
+  void SetNextRequestId(std::string request_id) {
+    next_request_id_ = std::move(request_id);
+  }
   // Half-closes the stream and returns its final status.
   absl::Status Finish();
   uint64_t next_step() const { return next_step_; }
@@ -72,6 +78,7 @@ class StepStream {
   std::string session_;
   uint64_t next_step_;
   size_t chunk_values_;
+  std::string next_request_id_;
   bool finished_ = false;
 };
 
@@ -126,9 +133,11 @@ class Client {
   absl::StatusOr<std::vector<v1::Session>> ListSessions();
   absl::Status DeleteSession(const std::string& name);
 
-  // Opens a step stream that continues after the session's current step.
+  // Opens a step stream that continues after the session's current step,
+  // or at `first_step` (e.g. to resend a step whose acknowledgement was
+  // lost, under its request id).
   absl::StatusOr<std::unique_ptr<StepStream>> OpenSteps(
-      const std::string& name);
+      const std::string& name, uint64_t first_step = 0);
 
   // Runs a query (its targets and options set by the caller) and collects
   // every chunk.

@@ -116,10 +116,16 @@ export class KinetriError extends Error {
 export class StepStream {
   readonly session: string;
   nextStep: number;
-  /** Moves points by interleaved deltas: all, or those named by `ids`. */
-  moveBy(deltas: Coordinates, ids?: Iterable<PointId>): Promise<StepAck>;
+  /**
+   * Moves points by interleaved deltas: all, or those named by `ids`.
+   * `requestId` names the step: resending a step already applied under it
+   * returns the original acknowledgement and applies nothing.
+   */
+  moveBy(deltas: Coordinates, ids?: Iterable<PointId> | null,
+         options?: {requestId?: string}): Promise<StepAck>;
   /** Moves points to absolute positions: all, or those named by `ids`. */
-  moveTo(positions: Coordinates, ids?: Iterable<PointId>): Promise<StepAck>;
+  moveTo(positions: Coordinates, ids?: Iterable<PointId> | null,
+         options?: {requestId?: string}): Promise<StepAck>;
   close(): Promise<void>;
 }
 
@@ -137,7 +143,8 @@ export class Client {
   /** Every session of the server (behind a proxy: of one replica). */
   listSessions(): Promise<Session[]>;
   deleteSession(name: string): Promise<void>;
-  openSteps(name: string): Promise<StepStream>;
+  /** A step stream after the current step, or at `firstStep`. */
+  openSteps(name: string, options?: {firstStep?: number}): Promise<StepStream>;
   nearestAll(session: string): Promise<Neighbors>;
   kNearest(session: string, k: number, targets?: Targets): Promise<Neighbors>;
   radius(session: string, r: number, targets?: Targets & {maxPerRow?: number}):

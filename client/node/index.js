@@ -135,12 +135,18 @@ class StepStream {
 
   // deltas: Float64Array/Array of interleaved dx, dy; ids optional (sparse:
   // the client's ids on POINT_ID_POLICY_CLIENT sessions).
-  moveBy(deltas, ids) { return this.send('DISPLACEMENT_MODE_DELTA', deltas, ids); }
-  moveTo(positions, ids) {
-    return this.send('DISPLACEMENT_MODE_ABSOLUTE', positions, ids);
+  // requestId (optional) names the step: resending a step the server
+  // already applied under that name (its acknowledgement was lost, e.g. on
+  // a new stream from openSteps(name, {firstStep})) returns the original
+  // acknowledgement and applies nothing.
+  moveBy(deltas, ids, {requestId = ''} = {}) {
+    return this.send('DISPLACEMENT_MODE_DELTA', deltas, ids, requestId);
+  }
+  moveTo(positions, ids, {requestId = ''} = {}) {
+    return this.send('DISPLACEMENT_MODE_ABSOLUTE', positions, ids, requestId);
   }
 
-  send(mode, values, ids) {
+  send(mode, values, ids, requestId = '') {
     if (this.error) return Promise.reject(this.error);
     const xy = Array.from(values);
     let idList = null;
@@ -158,7 +164,8 @@ class StepStream {
     for (let i = 0; ; i += this.chunkValues) {
       const end = Math.min(xy.length, i + this.chunkValues);
       const req = {session: this.session, step: this.nextStep, mode,
-                   xy: xy.slice(i, end), endOfStep: end === xy.length};
+                   xy: xy.slice(i, end), endOfStep: end === xy.length,
+                   requestId: i === 0 ? requestId : ''};
       if (idList) {
         req[this.clientIds ? 'clientIds' : 'ids'] = idList.slice(i / 2, end / 2);
       }
@@ -289,9 +296,13 @@ class Client {
                                                this.callOptions(), cb));
   }
 
-  async openSteps(name) {
+  // firstStep (optional): the step number the stream starts at (default:
+  // after the session's current step).
+  async openSteps(name, {firstStep} = {}) {
     const s = await this.getSession(name);
-    return new StepStream(this.stub, name, s.step + 1, this.chunkValues,
+    return new StepStream(this.stub, name,
+                          firstStep === undefined ? s.step + 1 : firstStep,
+                          this.chunkValues,
                           s.options.pointIdPolicy === 'POINT_ID_POLICY_CLIENT');
   }
 

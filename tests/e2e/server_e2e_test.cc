@@ -437,6 +437,52 @@ TEST(E2eShutdown, HealthTurnsNotServingWhileDraining) {
   EXPECT_EQ(server.Stop(), 0);
 }
 
+// A step resent under the request_id it was applied with (its
+// acknowledgement was lost) gets the original acknowledgement and is not
+// applied twice; another request_id, or none, is refused as before.
+TEST_F(E2eTest, ResentStepsAreIdempotent) {
+  std::vector<double> xy = Uniform(500, 21);
+  auto s = client_->CreateSession(xy, v1::SessionOptions(), "idem");
+  ASSERT_TRUE(s.ok()) << s.status();
+  std::vector<double> d(xy.size());
+  std::mt19937_64 rng(5);
+  std::normal_distribution<double> g(0.0, 0.01);
+  for (double& v : d) v = g(rng);
+  auto first = client_->OpenSteps(s->name());
+  ASSERT_TRUE(first.ok());
+  (*first)->SetNextRequestId("sim-7/step-1");
+  auto ack = (*first)->MoveBy(d);
+  ASSERT_TRUE(ack.ok()) << ack.status();
+  ASSERT_TRUE((*first)->Finish().ok());
+  for (int resend = 0; resend < 2; ++resend) {
+    auto again = client_->OpenSteps(s->name(), 1);
+    ASSERT_TRUE(again.ok());
+    (*again)->SetNextRequestId("sim-7/step-1");
+    auto replay = (*again)->MoveBy(d);
+    ASSERT_TRUE(replay.ok()) << replay.status();
+    EXPECT_EQ(replay->step(), 1u);
+    EXPECT_EQ(replay->stats().delaunay_flips(), ack->stats().delaunay_flips());
+    EXPECT_EQ(replay->stats().path(), ack->stats().path());
+    // The stream goes on with the next step.
+    EXPECT_EQ((*again)->next_step(), 2u);
+    ASSERT_TRUE((*again)->Finish().ok());
+  }
+  auto mesh = client_->Export(s->name());
+  ASSERT_TRUE(mesh.ok());
+  EXPECT_EQ(mesh->step, 1u);
+  for (size_t i = 0; i < xy.size(); ++i) {
+    ASSERT_EQ(mesh->xy[i], xy[i] + d[i]) << "applied twice? value " << i;
+  }
+  for (const std::string other : {"sim-7/step-x", ""}) {
+    auto stream = client_->OpenSteps(s->name(), 1);
+    ASSERT_TRUE(stream.ok());
+    (*stream)->SetNextRequestId(other);
+    auto refused = (*stream)->MoveBy(d);
+    EXPECT_EQ(refused.status().code(), absl::StatusCode::kFailedPrecondition)
+        << "request_id \"" << other << "\": " << refused.status();
+  }
+}
+
 // Paging tokens are opaque (no session name shows through) and only tokens
 // the server made are taken.
 TEST_F(E2eTest, ListSessionsPagesWithOpaqueTokens) {

@@ -82,6 +82,25 @@ test('create, step, query against brute force, export, errors', async () => {
                              order.slice(0, 4));
     });
 
+    // A resent step (same requestId, its acknowledgement "lost") is not
+    // applied twice; another requestId is refused.
+    {
+      const steps1 = await client.openSteps(s.name);
+      const d = new Float64Array(2 * n).fill(1e-4);
+      const ack = await steps1.moveBy(d, null, {requestId: 'node-step'});
+      await steps1.close();
+      const steps2 = await client.openSteps(s.name, {firstStep: ack.step});
+      const again = await steps2.moveBy(d, null, {requestId: 'node-step'});
+      assert.strictEqual(again.step, ack.step);
+      assert.strictEqual(again.stats.delaunayFlips, ack.stats.delaunayFlips);
+      await steps2.close();
+      assert.strictEqual((await client.getSession(s.name)).step, ack.step);
+      const steps3 = await client.openSteps(s.name, {firstStep: ack.step});
+      await assert.rejects(steps3.moveBy(d, null, {requestId: 'other'}),
+                           (e) => e.code === status.FAILED_PRECONDITION);
+      await steps3.close();
+    }
+
     const mesh = await client.exportTriangulation(s.name);
     assert.ok(mesh.xy instanceof Float64Array);
     assert.ok(mesh.triangles instanceof Uint32Array);

@@ -221,8 +221,10 @@ def create_requests(points, session_id: str, threads: int, ids,
 
 def step_requests(session: str, step: int, mode, values,
                   ids: Optional[Sequence[int]], client_ids: bool,
-                  chunk_points: int) -> List["pb.StepRequest"]:
-    """The messages of one step (checked before anything is sent)."""
+                  chunk_points: int,
+                  request_id: str = "") -> List["pb.StepRequest"]:
+    """The messages of one step (checked before anything is sent);
+    `request_id` names the step (resending it is then safe)."""
     flat = flat_xy(values)
     id_arr = None if ids is None else point_ids(ids, client_ids)
     if id_arr is not None and 2 * len(id_arr) != len(flat):
@@ -233,7 +235,8 @@ def step_requests(session: str, step: int, mode, values,
     while True:
         end = min(len(flat), start + size)
         req = pb.StepRequest(session=session, step=step, mode=mode,
-                             end_of_step=end == len(flat))
+                             end_of_step=end == len(flat),
+                             request_id=request_id if start == 0 else "")
         req.xy.extend(flat[start:end].tolist())
         if id_arr is not None:
             part = id_arr[start // 2:end // 2].tolist()

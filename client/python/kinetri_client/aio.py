@@ -33,6 +33,7 @@ class AsyncStepStream:
         self._client_ids = client_ids
         self._session = session
         self._next = first_step
+        self._failed = False
         self._call = stub.StreamSteps(metadata=tuple(metadata) +
                                       route(session))
 
@@ -40,41 +41,51 @@ class AsyncStepStream:
     def next_step(self) -> int:
         return self._next
 
-    async def move_by(self, deltas, ids: Optional[Sequence[int]] = None
-                      ) -> "pb.StepResponse":
+    async def move_by(self, deltas, ids: Optional[Sequence[int]] = None,
+                      request_id: str = "") -> "pb.StepResponse":
         """Moves points by (n, 2) deltas: all points in id order, or the
-        points named by `ids`."""
-        return await self._send(pb.DISPLACEMENT_MODE_DELTA, deltas, ids)
+        points named by `ids`. `request_id` names the step (see
+        StepStream.move_by)."""
+        return await self._send(pb.DISPLACEMENT_MODE_DELTA, deltas, ids,
+                                request_id)
 
-    async def move_to(self, positions, ids: Optional[Sequence[int]] = None
-                      ) -> "pb.StepResponse":
+    async def move_to(self, positions, ids: Optional[Sequence[int]] = None,
+                      request_id: str = "") -> "pb.StepResponse":
         """Moves points to (n, 2) absolute positions."""
-        return await self._send(pb.DISPLACEMENT_MODE_ABSOLUTE, positions, ids)
+        return await self._send(pb.DISPLACEMENT_MODE_ABSOLUTE, positions, ids,
+                                request_id)
 
-    async def _send(self, mode, values, ids) -> "pb.StepResponse":
+    async def _send(self, mode, values, ids,
+                    request_id: str) -> "pb.StepResponse":
         requests = step_requests(self._session, self._next, mode, values, ids,
-                                 self._client_ids, self._chunk_points)
+                                 self._client_ids, self._chunk_points,
+                                 request_id)
         try:
             for req in requests:
                 await self._call.write(req)
             resp = await self._call.read()
         except grpc.RpcError as e:
+            self._failed = True
             raise_from(e)
         if resp is grpc.aio.EOF:
+            self._failed = True
             code = await self._call.code()
             raise_from(_Ended(code, await self._call.details()))
         self._next += 1
         return resp
 
     async def close(self) -> None:
+        """Ends the stream; raises its final error unless a step already
+        raised it."""
         try:
             await self._call.done_writing()
             code = await self._call.code()
         except grpc.RpcError as e:
-            if e.code() != grpc.StatusCode.CANCELLED:
+            if e.code() != grpc.StatusCode.CANCELLED and not self._failed:
                 raise_from(e)
             return
-        if code not in (grpc.StatusCode.OK, grpc.StatusCode.CANCELLED):
+        if code not in (grpc.StatusCode.OK, grpc.StatusCode.CANCELLED) and \
+                not self._failed:
             raise_from(_Ended(code, await self._call.details()))
 
     async def __aenter__(self) -> "AsyncStepStream":
@@ -178,9 +189,12 @@ class AsyncClient:
         except grpc.RpcError as e:
             raise_from(e)
 
-    async def open_steps(self, name: str) -> AsyncStepStream:
+    async def open_steps(self, name: str,
+                         first_step: Optional[int] = None) -> AsyncStepStream:
         s = await self.get_session(name)
-        return AsyncStepStream(self._stub, name, s.step + 1,
+        return AsyncStepStream(self._stub, name,
+                               s.step + 1 if first_step is None
+                               else first_step,
                                self._chunk_points,
                                s.options.point_id_policy ==
                                pb.POINT_ID_POLICY_CLIENT, self._auth)

@@ -27,6 +27,7 @@ class StepStream:
         self._client_ids = client_ids
         self._session = session
         self._next = first_step
+        self._failed = False
         self._queue = _RequestQueue()
         self._responses = stub.StreamSteps(
             iter(self._queue), metadata=tuple(metadata) + route(session))
@@ -35,36 +36,44 @@ class StepStream:
     def next_step(self) -> int:
         return self._next
 
-    def move_by(self, deltas, ids: Optional[Sequence[int]] = None
-                ) -> "pb.StepResponse":
+    def move_by(self, deltas, ids: Optional[Sequence[int]] = None,
+                request_id: str = "") -> "pb.StepResponse":
         """Moves points by (n, 2) deltas: all points in id order, or the
         points named by `ids` (the client's ids on POINT_ID_POLICY_CLIENT
-        sessions)."""
-        return self._send(pb.DISPLACEMENT_MODE_DELTA, deltas, ids)
+        sessions). `request_id` names the step: resending a step the server
+        already applied under that name (its acknowledgement was lost, e.g.
+        on a new stream from open_steps(name, first_step=...)) returns the
+        original acknowledgement and applies nothing."""
+        return self._send(pb.DISPLACEMENT_MODE_DELTA, deltas, ids, request_id)
 
-    def move_to(self, positions, ids: Optional[Sequence[int]] = None
-                ) -> "pb.StepResponse":
+    def move_to(self, positions, ids: Optional[Sequence[int]] = None,
+                request_id: str = "") -> "pb.StepResponse":
         """Moves points to (n, 2) absolute positions."""
-        return self._send(pb.DISPLACEMENT_MODE_ABSOLUTE, positions, ids)
+        return self._send(pb.DISPLACEMENT_MODE_ABSOLUTE, positions, ids,
+                          request_id)
 
-    def _send(self, mode, values, ids) -> "pb.StepResponse":
+    def _send(self, mode, values, ids, request_id: str) -> "pb.StepResponse":
         for req in step_requests(self._session, self._next, mode, values, ids,
-                                 self._client_ids, self._chunk_points):
+                                 self._client_ids, self._chunk_points,
+                                 request_id):
             self._queue.put(req)
         try:
             resp = next(self._responses)
         except grpc.RpcError as e:
+            self._failed = True
             raise_from(e)
         self._next += 1
         return resp
 
     def close(self) -> None:
+        """Ends the stream; raises its final error unless a step already
+        raised it."""
         self._queue.close()
         try:
             for _ in self._responses:
                 pass
         except grpc.RpcError as e:
-            if e.code() != grpc.StatusCode.CANCELLED:
+            if e.code() != grpc.StatusCode.CANCELLED and not self._failed:
                 raise_from(e)
 
     def __enter__(self) -> "StepStream":
@@ -190,10 +199,14 @@ class Client:
         except grpc.RpcError as e:
             raise_from(e)
 
-    def open_steps(self, name: str) -> StepStream:
-        """A step stream continuing after the session's current step."""
+    def open_steps(self, name: str,
+                   first_step: Optional[int] = None) -> StepStream:
+        """A step stream continuing after the session's current step, or at
+        `first_step` (to resend a step whose acknowledgement was lost)."""
         s = self.get_session(name)
-        return StepStream(self._stub, name, s.step + 1, self._chunk_points,
+        return StepStream(self._stub, name,
+                          s.step + 1 if first_step is None else first_step,
+                          self._chunk_points,
                           s.options.point_id_policy ==
                           pb.POINT_ID_POLICY_CLIENT, self._auth)
 

@@ -105,6 +105,31 @@ class ClientTest(unittest.TestCase):
                 c.get_session(s.name)
             self.assertEqual(e.exception.code, grpc.StatusCode.NOT_FOUND)
 
+    def test_resent_steps_are_idempotent(self):
+        rng = np.random.default_rng(4)
+        pts = rng.random((300, 2))
+        d = rng.normal(0, 0.01, pts.shape)
+        with Client(self.target) as c:
+            s = c.create_session(pts, session_id="py-idem")
+            with c.open_steps(s.name) as steps:
+                ack = steps.move_by(d, request_id="py-step-1")
+            # The acknowledgement was "lost": resend on a new stream.
+            with c.open_steps(s.name, first_step=1) as steps:
+                again = steps.move_by(d, request_id="py-step-1")
+                self.assertEqual(again.step, 1)
+                self.assertEqual(again.stats.delaunay_flips,
+                                 ack.stats.delaunay_flips)
+                self.assertEqual(steps.next_step, 2)
+            step, positions, _ = c.export(s.name)
+            self.assertEqual(step, 1)
+            np.testing.assert_array_equal(positions, pts + d)
+            with c.open_steps(s.name, first_step=1) as steps:
+                with self.assertRaises(KinetriError) as e:
+                    steps.move_by(d, request_id="another")
+            self.assertEqual(e.exception.code,
+                             grpc.StatusCode.FAILED_PRECONDITION)
+            c.delete_session(s.name)
+
     def test_client_ids(self):
         rng = np.random.default_rng(9)
         pts = rng.random((300, 2))
