@@ -159,39 +159,54 @@ v1::StepStats ToProto(const core::StepReport& r) {
   return s;
 }
 
-v1::QueryResponse ToChunk(const core::NeighborLists& lists, uint64_t first,
-                          uint64_t count, uint64_t global_first,
-                          uint64_t total_rows, uint64_t step, bool distances,
-                          const std::vector<uint64_t>* client_ids) {
-  v1::QueryResponse r;
-  r.set_step(step);
-  r.set_first_row(global_first + first);
-  r.set_total_rows(total_rows);
-  if (count == 0) {
+bool EmitChunks(const core::NeighborLists& lists, uint64_t count,
+                uint64_t global_first, uint64_t total_rows, uint64_t step,
+                bool distances, const std::vector<uint64_t>* client_ids,
+                uint64_t rows_per_chunk, uint64_t results_per_chunk,
+                const std::function<bool(const v1::QueryResponse&)>& emit) {
+  rows_per_chunk = std::max<uint64_t>(rows_per_chunk, 1);
+  results_per_chunk = std::max<uint64_t>(results_per_chunk, 1);
+  const auto& off = lists.offsets;
+  uint64_t row = 0;                         // first row of the chunk
+  uint64_t start = count > 0 ? off[0] : 0;  // its first result
+  do {
+    v1::QueryResponse r;
+    r.set_step(step);
+    r.set_first_row(global_first + row);
+    r.set_total_rows(total_rows);
     r.add_offsets(0);
-    return r;
-  }
-  const uint64_t last = first + count;
-  const uint64_t base = lists.offsets[first];
-  for (uint64_t i = first; i <= last; ++i) {
-    r.add_offsets(lists.offsets[i] - base);
-  }
-  const uint64_t end = lists.offsets[last];
-  if (client_ids != nullptr) {
-    for (uint64_t k = base; k < end; ++k) {
-      r.add_client_ids((*client_ids)[lists.ids[k]]);
+    const uint64_t limit = start + results_per_chunk;
+    uint64_t end = start;  // one past the chunk's last result
+    uint64_t rows = 0;
+    while (row + rows < count && rows < rows_per_chunk &&
+           off[row + rows + 1] <= limit) {
+      end = off[row + rows + 1];
+      r.add_offsets(end - start);
+      if (lists.truncated[row + rows]) r.add_truncated_rows(rows);
+      ++rows;
     }
-  } else {
-    r.mutable_ids()->Add(lists.ids.begin() + base, lists.ids.begin() + end);
-  }
-  if (distances) {
-    r.mutable_distances()->Add(lists.distances.begin() + base,
-                               lists.distances.begin() + end);
-  }
-  for (uint64_t i = first; i < last; ++i) {
-    if (lists.truncated[i]) r.add_truncated_rows(i - first);
-  }
-  return r;
+    if (rows == 0 && row < count) {
+      // The row does not fit: as much of it as does, continued next.
+      end = limit;
+      r.add_offsets(end - start);
+      r.set_last_row_continues(true);
+    }
+    if (client_ids != nullptr) {
+      for (uint64_t k = start; k < end; ++k) {
+        r.add_client_ids((*client_ids)[lists.ids[k]]);
+      }
+    } else {
+      r.mutable_ids()->Add(lists.ids.begin() + start, lists.ids.begin() + end);
+    }
+    if (distances) {
+      r.mutable_distances()->Add(lists.distances.begin() + start,
+                                 lists.distances.begin() + end);
+    }
+    if (!emit(r)) return false;
+    row += rows;
+    start = end;
+  } while (row < count);
+  return true;
 }
 
 }  // namespace kinetri::server

@@ -3,6 +3,7 @@
 #define KINETRI_SERVER_CONVERT_H_
 
 #include <cstdint>
+#include <functional>
 #include <string>
 #include <vector>
 
@@ -51,14 +52,17 @@ class StepAssembler {
 
 v1::StepStats ToProto(const core::StepReport& report);
 
-// One response chunk: rows [first, first + count) of `lists`, which hold
-// the rows from `global_first` on of an answer of `total_rows` rows. Built
-// only when it is sent (the answer is never held twice). With client_ids,
-// result ids are the client's ids.
-v1::QueryResponse ToChunk(const core::NeighborLists& lists, uint64_t first,
-                          uint64_t count, uint64_t global_first,
-                          uint64_t total_rows, uint64_t step, bool distances,
-                          const std::vector<uint64_t>* client_ids);
+// Cuts rows [0, count) of `lists` (rows global_first.. of an answer of
+// total_rows rows) into response chunks of at most `rows_per_chunk` rows
+// and `results_per_chunk` results: whole rows while they fit, a row with
+// more results split across chunks (last_row_continues). Each chunk is
+// built only when `emit` takes it (the answer is never held twice); emit
+// returns false to stop. With client_ids, result ids are the client's ids.
+bool EmitChunks(const core::NeighborLists& lists, uint64_t count,
+                uint64_t global_first, uint64_t total_rows, uint64_t step,
+                bool distances, const std::vector<uint64_t>* client_ids,
+                uint64_t rows_per_chunk, uint64_t results_per_chunk,
+                const std::function<bool(const v1::QueryResponse&)>& emit);
 
 // Query targets of a PointIds message for `session` (sequential or client
 // ids, per its policy).

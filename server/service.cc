@@ -701,6 +701,13 @@ grpc::Status KinetriServiceImpl::Query(
   }
   const uint32_t rows_per_chunk =
       req->rows_per_chunk() ? req->rows_per_chunk() : 16384;
+  // At most 196608 results per message: 18 bytes each at worst (a client
+  // id and a distance) keeps every message under 4 MiB.
+  constexpr uint32_t kResultsPerChunk = 196608;
+  const uint32_t results_per_chunk =
+      req->results_per_chunk() == 0
+          ? kResultsPerChunk
+          : std::min(req->results_per_chunk(), kResultsPerChunk);
   // Rows are computed a block at a time and each block is sent before the
   // next is computed: memory follows the block, not the whole answer, and a
   // client that stops reading stops the computation (Write blocks under
@@ -754,17 +761,21 @@ grpc::Status KinetriServiceImpl::Query(
       return rpc.Done(ToGrpc(result.status()));
     }
     produced += result->ids.size();
-    for (uint64_t c = 0; c < count || (count == 0 && c == 0);
-         c += rows_per_chunk) {
-      if (ctx->IsCancelled()) {
-        return rpc.Done(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled"));
-      }
-      const uint64_t n = std::min<uint64_t>(rows_per_chunk, count - c);
-      if (!writer->Write(ToChunk(*result, c, n, first, total_rows, snap.step,
-                                 req->include_distances(), cids))) {
-        return rpc.Done(grpc::Status(grpc::StatusCode::CANCELLED,
-                                     "the client stopped reading"));
-      }
+    bool cancelled = false;
+    const bool sent =
+        EmitChunks(*result, count, first, total_rows, snap.step,
+                   req->include_distances(), cids, rows_per_chunk,
+                   results_per_chunk, [&](const v1::QueryResponse& chunk) {
+                     if (ctx->IsCancelled()) {
+                       cancelled = true;
+                       return false;
+                     }
+                     return writer->Write(chunk);
+                   });
+    if (!sent) {
+      return rpc.Done(
+          grpc::Status(grpc::StatusCode::CANCELLED,
+                       cancelled ? "cancelled" : "the client stopped reading"));
     }
     if (total_rows == 0) break;
   }

@@ -224,6 +224,7 @@ absl::StatusOr<Neighbors> Client::Query(const v1::QueryRequest& request) {
   out.offsets.push_back(0);
   v1::QueryResponse chunk;
   bool first = true;
+  bool continues = false;  // the last row goes on in this chunk
   while (reader->Read(&chunk)) {
     // Every chunk of one answer comes from the same step, rows in order.
     if (!first && chunk.step() != out.step) {
@@ -232,6 +233,9 @@ absl::StatusOr<Neighbors> Client::Query(const v1::QueryRequest& request) {
       return absl::InternalError(absl::StrCat("query answer mixes steps ",
                                               out.step, " and ", chunk.step()));
     }
+    // A row split across chunks continues where it left off: its end
+    // offset is replaced, not followed.
+    if (continues) out.offsets.pop_back();
     if (chunk.first_row() != out.offsets.size() - 1) {
       ctx.TryCancel();
       reader->Finish();
@@ -240,6 +244,7 @@ absl::StatusOr<Neighbors> Client::Query(const v1::QueryRequest& request) {
                                               out.offsets.size() - 1));
     }
     first = false;
+    continues = chunk.last_row_continues();
     out.step = chunk.step();
     const uint64_t base = out.ids.size() + out.client_ids.size();
     const uint64_t row0 = out.offsets.size() - 1;

@@ -334,8 +334,12 @@ class Client {
                    truncatedRows: [], clientIds: []};
       const call = this.stub.Query(request, route(request.session),
                                    this.callOptions());
+      let continues = false;  // the last row goes on in this chunk
       call.on('data', (chunk) => {
         out.step = Number(chunk.step);
+        // A row split across chunks: its end offset is replaced.
+        if (continues) out.offsets.pop();
+        continues = chunk.lastRowContinues;
         const base = out.ids.length + out.clientIds.length;
         const row0 = out.offsets.length - 1;
         for (let i = 1; i < chunk.offsets.length; i++) {

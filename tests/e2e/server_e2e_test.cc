@@ -483,6 +483,45 @@ TEST_F(E2eTest, ResentStepsAreIdempotent) {
   }
 }
 
+// Rows with more results than fit in one message are split across chunks
+// and put back together by the client: the same answer, whatever the
+// chunk sizes.
+TEST_F(E2eTest, RowsSplitAcrossChunks) {
+  auto s = client_->CreateSession(Uniform(400, 31), v1::SessionOptions(),
+                                  "split-rows");
+  ASSERT_TRUE(s.ok()) << s.status();
+  for (const v1::QueryKind kind :
+       {v1::QUERY_KIND_K_NEAREST, v1::QUERY_KIND_RADIUS}) {
+    v1::QueryRequest q;
+    q.set_session(s->name());
+    q.set_kind(kind);
+    q.set_k(120);
+    q.set_radius(0.3);
+    q.set_max_results_per_row(90);  // radius rows get cut (and flagged)
+    q.set_include_distances(true);
+    q.set_exclude_self(true);
+    for (uint32_t id : {0u, 7u, 99u, 300u}) q.mutable_point_ids()->add_ids(id);
+    auto whole = client_->Query(q);
+    ASSERT_TRUE(whole.ok()) << whole.status();
+    for (const uint32_t per : {1u, 7u, 64u, 121u}) {
+      for (const uint32_t rows : {1u, 3u}) {
+        q.set_results_per_chunk(per);
+        q.set_rows_per_chunk(rows);
+        auto split = client_->Query(q);
+        ASSERT_TRUE(split.ok()) << split.status();
+        EXPECT_EQ(split->offsets, whole->offsets) << per << " " << rows;
+        EXPECT_EQ(split->ids, whole->ids) << per << " " << rows;
+        EXPECT_EQ(split->distances, whole->distances) << per << " " << rows;
+        EXPECT_EQ(split->truncated_rows, whole->truncated_rows)
+            << per << " " << rows;
+      }
+    }
+    if (kind == v1::QUERY_KIND_RADIUS) {
+      EXPECT_FALSE(whole->truncated_rows.empty());
+    }
+  }
+}
+
 // Paging tokens are opaque (no session name shows through) and only tokens
 // the server made are taken.
 TEST_F(E2eTest, ListSessionsPagesWithOpaqueTokens) {

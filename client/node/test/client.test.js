@@ -82,6 +82,20 @@ test('create, step, query against brute force, export, errors', async () => {
                              order.slice(0, 4));
     });
 
+    // Rows longer than a chunk are split by the server, merged here.
+    {
+      const req = {session: s.name, kind: 'QUERY_KIND_K_NEAREST', k: 60,
+                   includeDistances: true, excludeSelf: true,
+                   pointIds: {ids: [3, 4, 5]}};
+      const whole = await client.query(req);
+      const split = await client.query({...req, resultsPerChunk: 7,
+                                        rowsPerChunk: 2});
+      assert.deepStrictEqual(split.offsets, whole.offsets);
+      assert.deepStrictEqual(split.ids, whole.ids);
+      assert.deepStrictEqual(split.distances, whole.distances);
+      assert.strictEqual(split.offsets[3], 180);
+    }
+
     // A resent step (same requestId, its acknowledgement "lost") is not
     // applied twice; another requestId is refused.
     {

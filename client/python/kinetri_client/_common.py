@@ -144,9 +144,16 @@ class NeighborsBuilder:
         self._dists: List[np.ndarray] = []
         self._trunc: List[np.ndarray] = []
         self._step = self._base = self._rows = 0
+        self._continues = False
 
     def add(self, chunk: "pb.QueryResponse") -> None:
         self._step = chunk.step
+        if self._continues:
+            # The row split across chunks goes on: its end offset is
+            # replaced, not followed.
+            self._offsets[-1] = self._offsets[-1][:-1]
+            self._rows -= 1
+        self._continues = chunk.last_row_continues
         off = np.asarray(chunk.offsets, dtype=np.uint64)
         self._offsets.append(off[1:] + np.uint64(self._base))
         self._ids.append(np.asarray(chunk.ids, dtype=np.uint32))

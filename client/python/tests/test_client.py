@@ -105,6 +105,24 @@ class ClientTest(unittest.TestCase):
                 c.get_session(s.name)
             self.assertEqual(e.exception.code, grpc.StatusCode.NOT_FOUND)
 
+    def test_rows_split_across_chunks(self):
+        from kinetri_client._common import query_request, pb
+        rng = np.random.default_rng(8)
+        with Client(self.target) as c:
+            s = c.create_session(rng.random((300, 2)), session_id="py-split")
+            req = query_request(s.name, pb.QUERY_KIND_K_NEAREST, k=100,
+                                ids=[0, 5, 9])
+            whole = c.query(req)
+            req.results_per_chunk = 7
+            req.rows_per_chunk = 2
+            split = c.query(req)
+            np.testing.assert_array_equal(split.offsets, whole.offsets)
+            np.testing.assert_array_equal(split.ids, whole.ids)
+            np.testing.assert_array_equal(split.distances, whole.distances)
+            self.assertEqual(len(split), 3)
+            self.assertEqual(len(split.row(1)), 100)
+            c.delete_session(s.name)
+
     def test_resent_steps_are_idempotent(self):
         rng = np.random.default_rng(4)
         pts = rng.random((300, 2))
