@@ -116,6 +116,7 @@ class StepStream {
     this.call = stub.StreamSteps(route(session));
     this.pending = [];
     this.error = null;
+    this.ended = false;
     this.call.on('data', (resp) => {
       const p = this.pending.shift();
       if (p) {
@@ -125,9 +126,11 @@ class StepStream {
     });
     this.call.on('error', (err) => {
       this.error = new KinetriError(err);
+      this.ended = true;
       for (const p of this.pending.splice(0)) p.reject(this.error);
     });
     this.call.on('end', () => {
+      this.ended = true;
       const err = this.error || new Error('step stream closed');
       for (const p of this.pending.splice(0)) p.reject(err);
     });
@@ -176,8 +179,13 @@ class StepStream {
     return result;
   }
 
+  // Ends the stream (resolves at once if the server already ended it).
   close() {
     return new Promise((resolve) => {
+      if (this.ended) {
+        resolve();
+        return;
+      }
       this.call.on('end', resolve);
       this.call.on('error', () => resolve());
       this.call.end();
