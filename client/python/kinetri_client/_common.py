@@ -7,7 +7,7 @@ import os
 import re
 import secrets
 from dataclasses import dataclass
-from typing import Iterator, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, Iterator, List, Optional, Sequence, Tuple
 
 import grpc
 import numpy as np
@@ -339,3 +339,31 @@ def channel_setup(token: Optional[str], ca: Optional[str],
             options.append(("grpc.ssl_target_name_override", server_name))
     auth: Metadata = (("authorization", "Bearer " + token),) if token else ()
     return ChannelSetup(credentials, options, auth)
+
+
+class ClientBase:
+    """What both clients keep: the channel (made by `secure` or `insecure`,
+    grpc's or grpc.aio's), the stub, chunk size, deadline, the metadata
+    every call carries, and each session's id policy once asked."""
+
+    def __init__(self, target: str, chunk_points: int,
+                 token: Optional[str], ca: Optional[str], cert: Optional[str],
+                 key: Optional[str], server_name: Optional[str],
+                 deadline: Optional[float], secure: Callable,
+                 insecure: Callable):
+        setup = channel_setup(token, ca, cert, key, server_name)
+        self._chunk_points = chunk_points
+        self._deadline = deadline
+        self._auth = setup.auth
+        if setup.credentials is not None:
+            self._channel = secure(target, setup.credentials,
+                                   options=setup.options)
+        else:
+            self._channel = insecure(target, options=setup.options)
+        self._stub = pb_grpc.KinetriServiceStub(self._channel)
+        self._policy: Dict[str, bool] = {}  # session -> uses client ids
+
+    def _md(self, session: str = "") -> Metadata:
+        """The call's metadata: the token, and the routing header of
+        `session` (none for calls about no session)."""
+        return self._auth + (route(session) if session else ())

@@ -8,16 +8,16 @@ as coroutines.
         nn = await client.nearest_all(s.name)
 """
 
-from typing import Dict, List, Optional, Sequence
+from typing import List, Optional, Sequence
 
 import grpc
 import grpc.aio
 
-from kinetri_client._common import (CHUNK_POINTS, DEFAULT_DEADLINE, Export,
-                                    ExportBuilder, Metadata, Neighbors,
-                                    NeighborsBuilder, channel_setup,
+from kinetri_client._common import (CHUNK_POINTS, DEFAULT_DEADLINE,
+                                    ClientBase, Export, ExportBuilder,
+                                    Metadata, Neighbors, NeighborsBuilder,
                                     create_requests, new_session_id, pb,
-                                    pb_grpc, query_request, raise_from, route,
+                                    query_request, raise_from, route,
                                     step_requests)
 
 __all__ = ["AsyncClient", "AsyncStepStream"]
@@ -109,7 +109,7 @@ class _Ended(grpc.RpcError):
         return self._details
 
 
-class AsyncClient:
+class AsyncClient(ClientBase):
     """kinetri_client.Client for asyncio: the same arguments (security
     settings default to the KINETRI_* environment variables), deadlines and
     retries; every method is a coroutine. An async context manager."""
@@ -120,18 +120,9 @@ class AsyncClient:
                  cert: Optional[str] = None, key: Optional[str] = None,
                  server_name: Optional[str] = None,
                  deadline: Optional[float] = DEFAULT_DEADLINE):
-        setup = channel_setup(token, ca, cert, key, server_name)
-        self._chunk_points = chunk_points
-        self._deadline = deadline
-        self._auth = setup.auth
-        if setup.credentials is not None:
-            self._channel = grpc.aio.secure_channel(
-                target, setup.credentials, options=setup.options)
-        else:
-            self._channel = grpc.aio.insecure_channel(target,
-                                                      options=setup.options)
-        self._stub = pb_grpc.KinetriServiceStub(self._channel)
-        self._policy: Dict[str, bool] = {}
+        super().__init__(target, chunk_points, token, ca, cert, key,
+                         server_name, deadline, grpc.aio.secure_channel,
+                         grpc.aio.insecure_channel)
 
     async def close(self) -> None:
         await self._channel.close()
@@ -141,9 +132,6 @@ class AsyncClient:
 
     async def __aexit__(self, *exc) -> None:
         await self.close()
-
-    def _md(self, session: str = "") -> Metadata:
-        return self._auth + (route(session) if session else ())
 
     async def create_session(self, points, session_id: str = "",
                              threads: int = 0, ids=None) -> "pb.Session":

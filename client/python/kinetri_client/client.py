@@ -1,17 +1,16 @@
 """The synchronous client over the generated gRPC stubs."""
 
 import queue
-from typing import Dict, Iterator, List, Optional, Sequence
+from typing import Iterator, List, Optional, Sequence
 
 import grpc
 
-from kinetri_client._common import (CHUNK_POINTS, DEFAULT_DEADLINE, Export,
-                                    ExportBuilder, KinetriError, Metadata,
-                                    Neighbors, NeighborsBuilder,
-                                    channel_setup, create_requests,
-                                    new_session_id, pb, pb_grpc,
-                                    query_request, raise_from, route,
-                                    step_requests)
+from kinetri_client._common import (CHUNK_POINTS, DEFAULT_DEADLINE,
+                                    ClientBase, Export, ExportBuilder,
+                                    KinetriError, Metadata, Neighbors,
+                                    NeighborsBuilder, create_requests,
+                                    new_session_id, pb, query_request,
+                                    raise_from, route, step_requests)
 
 __all__ = ["Client", "StepStream"]
 
@@ -103,7 +102,7 @@ class _RequestQueue:
             yield item
 
 
-class Client:
+class Client(ClientBase):
     """Connects to a kinetri-server at `target` ("host:port").
 
     Security (docs/SECURITY.md): `token` is sent as a bearer token with every
@@ -125,18 +124,9 @@ class Client:
                  cert: Optional[str] = None, key: Optional[str] = None,
                  server_name: Optional[str] = None,
                  deadline: Optional[float] = DEFAULT_DEADLINE):
-        setup = channel_setup(token, ca, cert, key, server_name)
-        self._chunk_points = chunk_points
-        self._deadline = deadline
-        self._auth = setup.auth
-        if setup.credentials is not None:
-            self._channel = grpc.secure_channel(target, setup.credentials,
-                                                options=setup.options)
-        else:
-            self._channel = grpc.insecure_channel(target,
-                                                  options=setup.options)
-        self._stub = pb_grpc.KinetriServiceStub(self._channel)
-        self._policy: Dict[str, bool] = {}  # session -> uses client ids
+        super().__init__(target, chunk_points, token, ca, cert, key,
+                         server_name, deadline, grpc.secure_channel,
+                         grpc.insecure_channel)
 
     def close(self) -> None:
         self._channel.close()
@@ -146,9 +136,6 @@ class Client:
 
     def __exit__(self, *exc) -> None:
         self.close()
-
-    def _md(self, session: str = "") -> Metadata:
-        return self._auth + (route(session) if session else ())
 
     # Sessions -------------------------------------------------------------
     def create_session(self, points, session_id: str = "",

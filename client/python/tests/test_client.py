@@ -39,7 +39,9 @@ def start_server(*flags):
     raise RuntimeError("server did not start")
 
 
-class ClientTest(unittest.TestCase):
+class ServerTestCase(unittest.TestCase):
+    """A real kinetri-server (defaults, loopback) for the whole class."""
+
     @classmethod
     def setUpClass(cls):
         cls.proc, cls.target = start_server()
@@ -48,6 +50,9 @@ class ClientTest(unittest.TestCase):
     def tearDownClass(cls):
         cls.proc.terminate()
         cls.proc.wait(timeout=30)
+
+
+class ClientTest(ServerTestCase):
 
     def test_lifecycle_against_brute_force(self):
         rng = np.random.default_rng(5)
@@ -453,18 +458,9 @@ class DeadlineAndRetryTest(unittest.TestCase):
         asyncio.run(run())
 
 
-class AsyncClientTest(unittest.TestCase):
+class AsyncClientTest(ServerTestCase):
     """kinetri_client.aio.AsyncClient end to end against the real server,
     checked against brute force."""
-
-    @classmethod
-    def setUpClass(cls):
-        cls.proc, cls.target = start_server()
-
-    @classmethod
-    def tearDownClass(cls):
-        cls.proc.terminate()
-        cls.proc.wait(timeout=30)
 
     def test_lifecycle(self):
         import asyncio
