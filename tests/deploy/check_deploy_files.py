@@ -59,7 +59,7 @@ class DeployFilesTest(unittest.TestCase):
         pdb = next(d for d in docs if d["kind"] == "PodDisruptionBudget")
         self.assertEqual(pdb["spec"]["maxUnavailable"], 1)
         for client in ("client/cpp/kinetri_client.h",
-                       "client/python/kinetri_client/client.py",
+                       "client/python/kinetri_client/_common.py",
                        "client/node/index.js"):
             self.assertIn('"kinetri-session"' if client.endswith(".h") or
                           client.endswith(".py") else "'kinetri-session'",
