@@ -15,7 +15,10 @@ test -x "$tmp/prefix/bin/kinetri-server"
 cp -r "$here/consumer" "$tmp/consumer"
 generator=()
 command -v ninja >/dev/null 2>&1 && generator=(-G Ninja)
-cmake -S "$tmp/consumer" -B "$tmp/build" "${generator[@]}" \
-  -DCMAKE_BUILD_TYPE=Release -DCMAKE_PREFIX_PATH="$tmp/prefix" >/dev/null
-cmake --build "$tmp/build" >/dev/null
+build() {  # output shown only when a step fails
+  "$@" >"$tmp/log" 2>&1 || { cat "$tmp/log"; echo "failed: $*"; exit 1; }
+}
+build cmake -S "$tmp/consumer" -B "$tmp/build" "${generator[@]}" \
+  -DCMAKE_BUILD_TYPE=Release -DCMAKE_PREFIX_PATH="$tmp/prefix"
+build cmake --build "$tmp/build"
 "$tmp/build/consumer"
