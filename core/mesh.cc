@@ -50,6 +50,30 @@ void Mesh::RenumberVertices(const std::vector<uint32_t>& new_of_old) {
   RebuildVertexEdges();
 }
 
+void Mesh::RenumberVertices(const std::vector<uint32_t>& new_of_old,
+                            uint32_t num_vertices) {
+  num_vertices_ = num_vertices;
+  RenumberVertices(new_of_old);
+}
+
+void Mesh::AddVertices(uint32_t count) {
+  num_vertices_ += count;
+  vertex_edge_.resize(num_vertices_, kNoEdge);
+}
+
+void Mesh::RelabelVertex(uint32_t from, uint32_t to) {
+  const uint32_t e0 = vertex_edge_[from];
+  if (e0 != kNoEdge) {
+    uint32_t e = e0;
+    do {
+      origin_[e] = to;
+      e = twin_[Prev(e)];
+    } while (e != e0);
+  }
+  vertex_edge_[to] = e0;
+  vertex_edge_[from] = kNoEdge;
+}
+
 void Mesh::SortTrianglesByVertex() {
   const uint32_t nt = num_triangles();
   std::vector<uint32_t> key(nt);

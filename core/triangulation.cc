@@ -17,6 +17,7 @@
 #include "absl/strings/str_cat.h"
 #include "core/cgal_builder.h"
 #include "core/flip_rules.h"
+#include "core/hint_grid.h"
 #include "core/parallel.h"
 #include "core/predicates.h"
 #include "core/site_adjacency.h"
@@ -956,6 +957,152 @@ bool Triangulation::RegionUpdate(std::vector<Vec2>& next,
   return FinishLocalStep(next, std::move(reinsert), hints, report, reason);
 }
 
+std::vector<Vec2> Triangulation::JoinedPositions(
+    const std::vector<uint32_t>& leaving,
+    const std::vector<Vec2>& joining) const {
+  const uint32_t n = size();
+  std::vector<uint8_t> gone(n, 0);
+  for (uint32_t ext : leaving) gone[ext] = 1;
+  std::vector<Vec2> out;
+  out.reserve(n - leaving.size() + joining.size());
+  for (uint32_t ext = 0; ext < n; ++ext) {
+    if (!gone[ext]) out.push_back(pos_[int_of_ext_[ext]]);
+  }
+  out.insert(out.end(), joining.begin(), joining.end());
+  return out;
+}
+
+bool Triangulation::JoinAndLeave(const std::vector<uint32_t>& leaving,
+                                 const std::vector<Vec2>& joining,
+                                 StepReport* report, std::string* reason) {
+  if (mesh_.empty()) {
+    *reason = "fewer than two dimensions (line mode)";
+    return false;
+  }
+  const uint32_t n = size();
+  const uint32_t m = static_cast<uint32_t>(joining.size());
+  MeshChangedOnHost();
+  // Start sites for locating the joining points (taken before any site
+  // leaves; a hint that left is skipped by InsertBatch).
+  std::optional<HintGrid> grid;
+  if (m > 64) grid.emplace(view());
+  // 1. Leave. A hidden coincident point leaves its chain; a site's
+  //    representative hands the mesh vertex to the next point of its site;
+  //    a point alone at its position is removed from the mesh (its star
+  //    re-triangulated, then legalized).
+  const auto t_remove = std::chrono::steady_clock::now();
+  std::vector<uint8_t> gone(n, 0);
+  uint32_t live_sites = num_sites();
+  std::vector<uint32_t> touched;
+  for (uint32_t ext : leaving) {
+    const uint32_t p = int_of_ext_[ext];
+    gone[p] = 1;
+    const uint32_t r = rep_[p];
+    if (r != p) {
+      uint32_t q = r;
+      while (dup_next_[q] != p) q = dup_next_[q];
+      dup_next_[q] = dup_next_[p];
+    } else if (dup_next_[p] != kNoVertex) {
+      const uint32_t q = dup_next_[p];
+      for (uint32_t x = q; x != kNoVertex; x = dup_next_[x]) rep_[x] = q;
+      mesh_.RelabelVertex(p, q);
+    } else {
+      if (mesh_.vertex_edge()[p] == kNoEdge || live_sites <= 3) {
+        *reason = "fewer than three distinct positions would remain";
+        return false;
+      }
+      touched.clear();
+      if (!VertexOps::Remove(mesh_, pos_, p, &touched, nullptr)) {
+        *reason = "the remaining points are collinear";
+        return false;
+      }
+      RegionExecutor::LegalizeSerial(mesh_, pos_, touched, &report->flips);
+      --live_sites;
+    }
+    dup_next_[p] = kNoVertex;
+    rep_[p] = p;
+  }
+  report->reinsert_seconds += SecondsSince(t_remove);
+  // 2. Join: new internal ids n.., inserted as re-inserted vertices are
+  //    (located from a nearby site, split, fixed, legalized).
+  if (m > 0) {
+    pos_.insert(pos_.end(), joining.begin(), joining.end());
+    for (uint32_t j = 0; j < m; ++j) {
+      rep_.push_back(n + j);
+      dup_next_.push_back(kNoVertex);
+      ext_of_int_.push_back(kNoVertex);
+    }
+    mesh_.AddVertices(m);
+    std::vector<uint32_t> hints(n + m, kNoVertex);
+    if (grid) {
+      const HintGridView g = grid->view();
+      for (uint32_t j = 0; j < m; ++j) hints[n + j] = g.Hint(joining[j]);
+    }
+    std::vector<uint32_t> pending(m);
+    std::iota(pending.begin(), pending.end(), n);
+    const auto t_insert = std::chrono::steady_clock::now();
+    const bool inserted = InsertBatch(std::move(pending), hints, report);
+    report->reinsert_seconds += SecondsSince(t_insert);
+    if (!inserted) {
+      // Back to n points (pos_ of the old points is unchanged).
+      pos_.resize(n);
+      rep_.resize(n);
+      dup_next_.resize(n);
+      ext_of_int_.resize(n);
+      *reason = "inserting the joining points failed";
+      return false;
+    }
+  }
+  if (mesh_.has_free_triangles()) mesh_.Compact();
+  // 3. Renumber: the remaining points keep their internal (spatial) order,
+  //    the joining ones follow; external ids close the gaps in order.
+  const uint32_t total = n + m;
+  const uint32_t n_new = total - static_cast<uint32_t>(leaving.size());
+  std::vector<uint32_t> new_ext_of_old(n, kNoVertex);
+  {
+    uint32_t next_ext = 0;
+    for (uint32_t ext = 0; ext < n; ++ext) {
+      if (!gone[int_of_ext_[ext]]) new_ext_of_old[ext] = next_ext++;
+    }
+  }
+  std::vector<uint32_t> new_of_old(total, kNoVertex);
+  {
+    uint32_t next_int = 0;
+    for (uint32_t i = 0; i < total; ++i) {
+      if (i >= n || !gone[i]) new_of_old[i] = next_int++;
+    }
+  }
+  std::vector<Vec2> pos(n_new);
+  std::vector<uint32_t> ext(n_new), rep(n_new), dup(n_new);
+  for (uint32_t o = 0; o < total; ++o) {
+    const uint32_t i = new_of_old[o];
+    if (i == kNoVertex) continue;
+    pos[i] = pos_[o];
+    ext[i] = o < n ? new_ext_of_old[ext_of_int_[o]] : n_new - m + (o - n);
+    rep[i] = new_of_old[rep_[o]];
+    dup[i] = dup_next_[o] == kNoVertex ? kNoVertex : new_of_old[dup_next_[o]];
+  }
+  pos_ = std::move(pos);
+  ext_of_int_ = std::move(ext);
+  rep_ = std::move(rep);
+  dup_next_ = std::move(dup);
+  int_of_ext_.assign(n_new, 0);
+  for (uint32_t i = 0; i < n_new; ++i) int_of_ext_[ext_of_int_[i]] = i;
+  if (!leaving.empty()) {
+    mesh_.RenumberVertices(new_of_old, n_new);
+  }
+  mesh_.SortTrianglesByVertex();
+  sites_.clear();
+  has_duplicates_ = false;
+  for (uint32_t i = 0; i < n_new; ++i) {
+    if (rep_[i] == i) sites_.push_back(i);
+    if (dup_next_[i] != kNoVertex) has_duplicates_ = true;
+  }
+  report->removed_points = static_cast<uint32_t>(leaving.size());
+  report->added_points = m;
+  return true;
+}
+
 absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
     const DisplacementBatch& batch, const CancelToken* cancel) {
   const auto start = std::chrono::steady_clock::now();
@@ -963,7 +1110,10 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
   const bool dense = batch.ids.empty();
   const char* field =
       batch.mode == DisplacementBatch::Mode::kDelta ? "deltas" : "positions";
-  if (dense && batch.values.size() != n) {
+  const bool changes = !batch.remove.empty() || !batch.add.empty();
+  // A batch with only points that leave or join moves nothing.
+  const bool no_moves = dense && changes && batch.values.empty();
+  if (dense && !no_moves && batch.values.size() != n) {
     return absl::InvalidArgumentError(
         absl::StrCat(field, ": expected ", n, " values (one per point), got ",
                      batch.values.size()));
@@ -974,6 +1124,32 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
                      batch.ids.size(), " ids"));
   }
   // Validate everything before touching state.
+  std::vector<uint8_t> leaves;
+  if (changes) {
+    const uint64_t after =
+        uint64_t{n} - batch.remove.size() + uint64_t{batch.add.size()};
+    if (batch.remove.size() > n || after >= (uint64_t{1} << 29)) {
+      return absl::ResourceExhaustedError(absl::StrCat(
+          "add: ", after, " points after this step exceed the limit of 2^29"));
+    }
+    leaves.assign(n, 0);
+    for (size_t i = 0; i < batch.remove.size(); ++i) {
+      const uint32_t ext = batch.remove[i];
+      if (ext >= n) {
+        return absl::NotFoundError(absl::StrCat(
+            "remove[", i, "] = ", ext, ": no such point (size ", n, ")"));
+      }
+      if (leaves[ext]) {
+        return absl::InvalidArgumentError(
+            absl::StrCat("remove[", i, "] = ", ext, " appears twice"));
+      }
+      leaves[ext] = 1;
+    }
+    for (size_t i = 0; i < batch.add.size(); ++i) {
+      absl::Status s = CheckPosition(batch.add[i], "add", i);
+      if (!s.ok()) return s;
+    }
+  }
   std::vector<Vec2>& next = next_;
   next.resize(n);
   const bool delta = batch.mode == DisplacementBatch::Mode::kDelta;
@@ -989,7 +1165,9 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
     }
     return CheckPosition(p, "new position of point", ext);
   };
-  if (dense) {
+  if (no_moves) {
+    next = pos_;
+  } else if (dense) {
     // Parallel, in internal order; the first bad entry (by index) is
     // reported, as a sequential scan would.
     std::atomic<uint64_t> first_bad{UINT64_MAX};
@@ -1029,11 +1207,24 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
             absl::StrCat("ids[", i, "] = ", ext, " appears twice"));
       }
       seen[ext] = 1;
+      if (!leaves.empty() && leaves[ext]) {
+        return absl::InvalidArgumentError(
+            absl::StrCat("ids[", i, "] = ", ext,
+                         " leaves with this step (it is in remove)"));
+      }
       const uint32_t in = int_of_ext_[ext];
       const Vec2 p = new_position(i, in);
       absl::Status st = check(i, ext, p);
       if (!st.ok()) return st;
       next[in] = p;
+    }
+  }
+
+  // Points that leave stay where they are until they leave.
+  if (dense && !leaves.empty()) {
+    for (uint32_t ext : batch.remove) {
+      const uint32_t in = int_of_ext_[ext];
+      next[in] = pos_[in];
     }
   }
 
@@ -1046,7 +1237,7 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
   if (cancel != nullptr) {
     if (absl::Status s = cancel->Check("step"); !s.ok()) return s;
   }
-  if (moved.empty()) {
+  if (moved.empty() && !changes) {
     ++steps_;
     report.num_sites = num_sites();
     return report;
@@ -1057,45 +1248,76 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
   }
 
   int cancelled = 0;
-  Run([&] {
-    std::string reason;
-    bool ok = false;
-    if (mesh_.empty()) {
-      reason = "fewer than two dimensions (line mode)";
-    } else {
-      ok = options_.executor == Executor::kRegions
-               ? RegionUpdate(next, moved, cancel, &report, &reason, &cancelled)
-               : LocalUpdate(next, moved, cancel, &report, &reason, &cancelled);
-    }
-    if (cancelled == 2) {
-      // Back to the previous step: positions (pos_) are unchanged; the
-      // mesh and the coincident-point chains are rebuilt from them.
-      std::vector<Vec2> by_ext(n);
-      for (uint32_t i = 0; i < n; ++i) by_ext[ext_of_int_[i]] = pos_[i];
-      Rebuild(by_ext);
-    }
-    if (cancelled) return;
-    ++steps_;
-    if (ok) {
-      report.path = report.reinserted > 0 ? UpdatePath::kReinserted
-                    : report.substeps > 1 ? UpdatePath::kSubdivided
-                                          : UpdatePath::kLocal;
-      if (options_.renumber_check_interval > 0 &&
-          steps_ % options_.renumber_check_interval == 0 &&
-          MeanEdgeSpan() > options_.renumber_stretch * baseline_span_ + 1.0) {
-        Renumber();
+  if (moved.empty()) ++steps_;
+  if (!moved.empty())
+    Run([&] {
+      std::string reason;
+      bool ok = false;
+      if (mesh_.empty()) {
+        reason = "fewer than two dimensions (line mode)";
+      } else {
+        ok = options_.executor == Executor::kRegions
+                 ? RegionUpdate(next, moved, cancel, &report, &reason,
+                                &cancelled)
+                 : LocalUpdate(next, moved, cancel, &report, &reason,
+                               &cancelled);
+      }
+      if (cancelled == 2) {
+        // Back to the previous step: positions (pos_) are unchanged; the
+        // mesh and the coincident-point chains are rebuilt from them.
+        std::vector<Vec2> by_ext(n);
+        for (uint32_t i = 0; i < n; ++i) by_ext[ext_of_int_[i]] = pos_[i];
+        Rebuild(by_ext);
+      }
+      if (cancelled) return;
+      ++steps_;
+      if (ok) {
+        report.path = report.reinserted > 0 ? UpdatePath::kReinserted
+                      : report.substeps > 1 ? UpdatePath::kSubdivided
+                                            : UpdatePath::kLocal;
+        if (options_.renumber_check_interval > 0 &&
+            steps_ % options_.renumber_check_interval == 0 &&
+            MeanEdgeSpan() > options_.renumber_stretch * baseline_span_ + 1.0) {
+          Renumber();
+          report.renumbered = true;
+        }
+      } else {
+        std::vector<Vec2> by_ext(n);
+        for (uint32_t i = 0; i < n; ++i) by_ext[ext_of_int_[i]] = next[i];
+        Rebuild(by_ext);
+        report.path = UpdatePath::kRebuilt;
+        report.fallback_reason = reason;
         report.renumbered = true;
       }
-    } else {
-      std::vector<Vec2> by_ext(n);
-      for (uint32_t i = 0; i < n; ++i) by_ext[ext_of_int_[i]] = next[i];
-      Rebuild(by_ext);
-      report.path = UpdatePath::kRebuilt;
-      report.fallback_reason = reason;
-      report.renumbered = true;
-    }
-  });
+    });
   if (cancelled) return cancel->Check("step");  // fired, so not OK
+  if (changes) {
+    // Once the moves are done, the points that leave and join follow (not
+    // cancelled: local work bounded by the batch).
+    Run([&] {
+      std::string reason;
+      if (JoinAndLeave(batch.remove, batch.add, &report, &reason)) {
+        if (report.path == UpdatePath::kNoop) report.path = UpdatePath::kLocal;
+        if (options_.renumber_check_interval > 0 &&
+            steps_ % options_.renumber_check_interval == 0 &&
+            !report.renumbered &&
+            MeanEdgeSpan() > options_.renumber_stretch * baseline_span_ + 1.0) {
+          Renumber();
+          report.renumbered = true;
+        }
+      } else {
+        Rebuild(JoinedPositions(batch.remove, batch.add));
+        report.path = UpdatePath::kRebuilt;
+        report.fallback_reason =
+            report.fallback_reason.empty()
+                ? reason
+                : absl::StrCat(report.fallback_reason, "; ", reason);
+        report.renumbered = true;
+        report.removed_points = static_cast<uint32_t>(batch.remove.size());
+        report.added_points = static_cast<uint32_t>(batch.add.size());
+      }
+    });
+  }
   report.num_sites = num_sites();
   report.seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - start)

@@ -84,13 +84,24 @@ struct TriangulationOptions {
   int renumber_check_interval = 8;  // steps between locality checks
 };
 
-// A batch of motion. `ids` empty means dense (one value per point, in id
-// order); otherwise values[i] applies to point ids[i] (ids must be distinct).
+// A batch of motion, and of points that leave and join. `ids` empty means
+// dense (one value per point, in id order); otherwise values[i] applies to
+// point ids[i] (ids must be distinct). A batch with no ids and no values
+// but with points that leave or join moves nothing.
+//
+// The moves apply first (ids as before the step), then the points in
+// `remove` leave (ids as before the step, distinct; their values in a
+// dense batch are not used; a sparse batch must not name them), then the
+// points of `add` join. Afterwards the remaining points keep their order
+// and are numbered 0.. again, and the joining points follow in the order
+// given: ids n - remove.size() .. n - remove.size() + add.size() - 1.
 struct DisplacementBatch {
   enum class Mode { kDelta, kAbsolute };
   Mode mode = Mode::kDelta;
   std::vector<uint32_t> ids;
   std::vector<Vec2> values;
+  std::vector<uint32_t> remove;
+  std::vector<Vec2> add;
 
   static DisplacementBatch Dense(std::vector<Vec2> deltas);
   static DisplacementBatch Sparse(std::vector<uint32_t> ids,
@@ -112,6 +123,8 @@ struct StepReport {
   uint32_t local_halvings = 0;   // rounds that halved stuck vertices' motion
   uint32_t held_vertices = 0;    // region executor: vertices moved alone
   uint32_t deferred = 0;         // region executor: boundary elements
+  uint32_t removed_points = 0;   // points that left with this step
+  uint32_t added_points = 0;     // points that joined with this step
   FlipCounts flips;
   std::string fallback_reason;  // why the step was rebuilt, if it was
   bool renumbered = false;
@@ -246,6 +259,16 @@ class Triangulation {
   // parallel, split one point per triangle, fix and legalize together.
   bool InsertBatch(std::vector<uint32_t> pending,
                    const std::vector<uint32_t>& hints, StepReport* report);
+  // Removes the points `leaving` (external ids) and inserts `joining` into
+  // the mesh locally (planar mode), then renumbers the points (see
+  // DisplacementBatch). False (with reason) when the mesh cannot be
+  // updated locally; the caller then rebuilds with JoinedPositions().
+  bool JoinAndLeave(const std::vector<uint32_t>& leaving,
+                    const std::vector<Vec2>& joining, StepReport* report,
+                    std::string* reason);
+  // Positions after `leaving` leave and `joining` join, in the new order.
+  std::vector<Vec2> JoinedPositions(const std::vector<uint32_t>& leaving,
+                                    const std::vector<Vec2>& joining) const;
   double MeanEdgeSpan() const;
   // Smallest external id among the points of the site of vertex v.
   uint32_t SiteId(uint32_t v) const;
