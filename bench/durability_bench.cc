@@ -89,7 +89,7 @@ int main(int argc, char** argv) {
     for (int s = 0; s <= steps; ++s) {
       const kc::DisplacementBatch b = batch();
       const auto t0 = Clock::now();
-      auto r = session.ApplyStep(s + 1, b, nullptr);
+      auto r = session.ApplyStep(s + 1, b, nullptr, nullptr);
       if (!r.ok()) {
         std::fprintf(stderr, "%s\n", r.status().ToString().c_str());
         return 1;

@@ -61,6 +61,15 @@ absl::Status StepAssembler::Add(const v1::StepRequest& chunk) {
   const size_t before = values_.size();
   absl::Status s = AppendPoints(chunk.xy(), "xy", &values_);
   if (!s.ok()) return s;
+  s = AppendPoints(chunk.add_xy(), "add_xy", &add_);
+  if (!s.ok()) return s;
+  remove_ids_.insert(remove_ids_.end(), chunk.remove_ids().begin(),
+                     chunk.remove_ids().end());
+  remove_client_ids_.insert(remove_client_ids_.end(),
+                            chunk.remove_client_ids().begin(),
+                            chunk.remove_client_ids().end());
+  add_client_ids_.insert(add_client_ids_.end(), chunk.add_client_ids().begin(),
+                         chunk.add_client_ids().end());
   if (sparse_) {
     if (client != client_) {
       return absl::InvalidArgumentError(
@@ -83,13 +92,21 @@ absl::Status StepAssembler::Add(const v1::StepRequest& chunk) {
   return absl::OkStatus();
 }
 
-absl::StatusOr<core::DisplacementBatch> StepAssembler::Take(
-    const Session& session) {
+absl::StatusOr<AssembledStep> StepAssembler::Take(const Session& session) {
   const bool client = client_;
+  AssembledStep out;
   std::vector<uint64_t> client_ids = std::move(client_ids_);
   client_ids_.clear();
   client_ = false;
-  core::DisplacementBatch b;
+  std::vector<uint32_t> remove_ids = std::move(remove_ids_);
+  std::vector<uint64_t> remove_client_ids = std::move(remove_client_ids_);
+  std::vector<uint64_t> add_client_ids = std::move(add_client_ids_);
+  remove_ids_.clear();
+  remove_client_ids_.clear();
+  add_client_ids_.clear();
+  core::DisplacementBatch& b = out.batch;
+  b.add = std::move(add_);
+  add_.clear();
   b.mode = mode_ == v1::DISPLACEMENT_MODE_ABSOLUTE
                ? core::DisplacementBatch::Mode::kAbsolute
                : core::DisplacementBatch::Mode::kDelta;
@@ -108,21 +125,35 @@ absl::StatusOr<core::DisplacementBatch> StepAssembler::Take(
         "ids: this session uses client ids (POINT_ID_POLICY_CLIENT); use "
         "client_ids");
   }
-  if (client) {
-    b.ids.resize(client_ids.size());
-    for (size_t i = 0; i < client_ids.size(); ++i) {
-      auto in =
-          session.IndexOf(client_ids[i], absl::StrCat("client_ids[", i, "]"));
-      if (!in.ok()) return in.status();
-      b.ids[i] = *in;
+  if (session.has_client_ids()) {
+    if (!remove_ids.empty()) {
+      return absl::InvalidArgumentError(
+          "remove_ids: this session uses client ids (POINT_ID_POLICY_CLIENT); "
+          "use remove_client_ids");
     }
+    if (add_client_ids.size() != b.add.size()) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "add_client_ids: ", add_client_ids.size(), " ids for ", b.add.size(),
+          " added points (POINT_ID_POLICY_CLIENT names each point)"));
+    }
+    out.client_ids.moved = std::move(client_ids);
+    out.client_ids.removed = std::move(remove_client_ids);
+    out.client_ids.added = std::move(add_client_ids);
+  } else {
+    if (!remove_client_ids.empty() || !add_client_ids.empty()) {
+      return absl::InvalidArgumentError(
+          "remove_client_ids, add_client_ids: this session numbers points "
+          "sequentially; use remove_ids (added points are numbered after "
+          "the others)");
+    }
+    b.remove = std::move(remove_ids);
   }
-  return b;
+  return out;
 }
 
 absl::StatusOr<std::vector<uint32_t>> ResolvePointIds(const v1::PointIds& ids,
-                                                      const Session& session) {
-  if (session.has_client_ids()) {
+                                                      const PointIdMap* map) {
+  if (map != nullptr) {
     if (ids.ids_size() > 0) {
       return absl::InvalidArgumentError(
           "point_ids.ids: this session uses client ids; use "
@@ -130,8 +161,8 @@ absl::StatusOr<std::vector<uint32_t>> ResolvePointIds(const v1::PointIds& ids,
     }
     std::vector<uint32_t> out(ids.client_ids_size());
     for (int i = 0; i < ids.client_ids_size(); ++i) {
-      auto in = session.IndexOf(ids.client_ids(i),
-                                absl::StrCat("point_ids.client_ids[", i, "]"));
+      auto in = map->IndexOf(ids.client_ids(i),
+                             absl::StrCat("point_ids.client_ids[", i, "]"));
       if (!in.ok()) return in.status();
       out[i] = *in;
     }
@@ -156,6 +187,8 @@ v1::StepStats ToProto(const core::StepReport& r) {
   s.set_delaunay_flips(r.flips.delaunay);
   s.set_fallback_reason(r.fallback_reason);
   s.set_update_seconds(r.seconds);
+  s.set_removed_points(r.removed_points);
+  s.set_added_points(r.added_points);
   return s;
 }
 

@@ -22,6 +22,14 @@ absl::Status AppendPoints(const google::protobuf::RepeatedField<double>& xy,
                           const std::string& field,
                           std::vector<core::Vec2>* out);
 
+// One step as received: the core batch (dense ids) and, for
+// POINT_ID_POLICY_CLIENT sessions, the client ids it names (resolved by
+// Session::ApplyStep against the step before).
+struct AssembledStep {
+  core::DisplacementBatch batch;
+  StepClientIds client_ids;
+};
+
 // Accumulates the chunks of one step into a core batch.
 class StepAssembler {
  public:
@@ -30,13 +38,17 @@ class StepAssembler {
   bool empty() const { return chunks_ == 0; }
   // Values (xy pairs) received so far for this step.
   uint64_t size() const { return values_.size(); }
+  // Points removed and added so far in this step.
+  uint64_t removed() const {
+    return remove_ids_.size() + remove_client_ids_.size();
+  }
+  uint64_t added() const { return add_.size(); }
   uint64_t step() const { return step_; }
   // The step's request_id ("" if none was sent).
   const std::string& request_id() const { return request_id_; }
-  // The assembled batch, with client ids resolved through `session`
-  // (NOT_FOUND for an unknown one, INVALID_ARGUMENT for the wrong kind of
-  // ids for its policy); resets the assembler.
-  absl::StatusOr<core::DisplacementBatch> Take(const Session& session);
+  // The assembled step (INVALID_ARGUMENT for the wrong kind of ids for the
+  // session's policy); resets the assembler.
+  absl::StatusOr<AssembledStep> Take(const Session& session);
 
  private:
   uint64_t chunks_ = 0;
@@ -48,6 +60,10 @@ class StepAssembler {
   std::vector<uint32_t> ids_;
   std::vector<uint64_t> client_ids_;
   std::vector<core::Vec2> values_;
+  std::vector<uint32_t> remove_ids_;
+  std::vector<uint64_t> remove_client_ids_;
+  std::vector<core::Vec2> add_;
+  std::vector<uint64_t> add_client_ids_;
 };
 
 v1::StepStats ToProto(const core::StepReport& report);
@@ -64,10 +80,10 @@ bool EmitChunks(const core::NeighborLists& lists, uint64_t count,
                 uint64_t rows_per_chunk, uint64_t results_per_chunk,
                 const std::function<bool(const v1::QueryResponse&)>& emit);
 
-// Query targets of a PointIds message for `session` (sequential or client
-// ids, per its policy).
+// Query targets of a PointIds message: client ids resolved through `ids`
+// (POINT_ID_POLICY_CLIENT sessions), else sequential ids.
 absl::StatusOr<std::vector<uint32_t>> ResolvePointIds(const v1::PointIds& ids,
-                                                      const Session& session);
+                                                      const PointIdMap* map);
 
 }  // namespace kinetri::server
 

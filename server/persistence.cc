@@ -21,7 +21,8 @@ constexpr uint32_t kMagic = 0x52544E4B;  // "KNTR"
 constexpr uint32_t kSnapshotRecord = 1;
 constexpr uint32_t kStepRecord = 2;
 constexpr uint32_t kAbortRecord = 3;
-constexpr uint32_t kSnapshotVersion = 1;
+// 2: the client-id policy is recorded (version 1 implied it from the ids).
+constexpr uint32_t kSnapshotVersion = 2;
 constexpr size_t kHeader = 4 + 4 + 8 + 4;
 
 // Little-endian encoding (the x86-64 and arm64 hosts we run on).
@@ -138,9 +139,11 @@ absl::StatusOr<std::string> ReadAll(const std::string& path) {
   return out.str();
 }
 
-std::string StepPayload(uint64_t step, const core::DisplacementBatch& b) {
+std::string StepPayload(uint64_t step, const core::DisplacementBatch& b,
+                        const std::vector<uint64_t>& added_client_ids) {
   std::string p;
-  p.reserve(32 + 4 * b.ids.size() + 16 * b.values.size());
+  p.reserve(64 + 4 * b.ids.size() + 16 * b.values.size() + 4 * b.remove.size() +
+            16 * b.add.size() + 8 * added_client_ids.size());
   Put<uint64_t>(&p, step);
   Put<uint8_t>(&p, b.mode == core::DisplacementBatch::Mode::kAbsolute ? 1 : 0);
   Put<uint64_t>(&p, b.ids.size());
@@ -149,6 +152,18 @@ std::string StepPayload(uint64_t step, const core::DisplacementBatch& b) {
   static_assert(sizeof(core::Vec2) == 2 * sizeof(double));
   p.append(reinterpret_cast<const char*>(b.values.data()),
            sizeof(core::Vec2) * b.values.size());
+  // Points that leave and join (absent in journals written before them).
+  if (!b.remove.empty() || !b.add.empty()) {
+    Put<uint64_t>(&p, b.remove.size());
+    p.append(reinterpret_cast<const char*>(b.remove.data()),
+             4 * b.remove.size());
+    Put<uint64_t>(&p, b.add.size());
+    p.append(reinterpret_cast<const char*>(b.add.data()),
+             sizeof(core::Vec2) * b.add.size());
+    Put<uint64_t>(&p, added_client_ids.size());
+    p.append(reinterpret_cast<const char*>(added_client_ids.data()),
+             8 * added_client_ids.size());
+  }
   return p;
 }
 
@@ -166,6 +181,18 @@ bool ParseStep(const std::string& payload, RestoredSession::Step* out) {
   if (!r.Get(&nvals) || !r.Has(nvals, 16)) return false;
   out->batch.values.resize(nvals);
   for (core::Vec2& v : out->batch.values) r.Get(&v);
+  if (r.done()) return true;
+  uint64_t nremove = 0, nadd = 0, nadd_ids = 0;
+  if (!r.Get(&nremove) || !r.Has(nremove, 4)) return false;
+  out->batch.remove.resize(nremove);
+  for (uint32_t& id : out->batch.remove) r.Get(&id);
+  if (!r.Get(&nadd) || !r.Has(nadd, 16)) return false;
+  out->batch.add.resize(nadd);
+  for (core::Vec2& v : out->batch.add) r.Get(&v);
+  if (!r.Get(&nadd_ids) || !r.Has(nadd_ids, 8)) return false;
+  if (nadd_ids != 0 && nadd_ids != nadd) return false;
+  out->added_client_ids.resize(nadd_ids);
+  for (uint64_t& id : out->added_client_ids) r.Get(&id);
   return r.done();
 }
 
@@ -200,6 +227,7 @@ absl::StatusOr<uint64_t> WriteSnapshot(const std::string& dir,
   Put<uint64_t>(&p, meta.client_ids.size());
   p.append(reinterpret_cast<const char*>(meta.client_ids.data()),
            8 * meta.client_ids.size());
+  Put<uint8_t>(&p, meta.client_id_policy ? 1 : 0);
   const std::string header = Header(kSnapshotRecord, p);
   const std::string tmp = dir + "/snapshot.tmp";
   const int fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0600);
@@ -265,8 +293,9 @@ absl::Status Journal::Write(uint32_t type, const std::string& payload) {
 }
 
 absl::Status Journal::Append(uint64_t step,
-                             const core::DisplacementBatch& batch) {
-  return Write(kStepRecord, StepPayload(step, batch));
+                             const core::DisplacementBatch& batch,
+                             const std::vector<uint64_t>& added_client_ids) {
+  return Write(kStepRecord, StepPayload(step, batch, added_client_ids));
 }
 
 absl::Status Journal::Abort(uint64_t step) {
@@ -447,7 +476,7 @@ std::vector<RestoredSession> SessionStore::LoadAll(
       uint32_t version = 0;
       int64_t created = 0;
       uint64_t n = 0, nids = 0;
-      ok = r.Get(&version) && version == kSnapshotVersion &&
+      ok = r.Get(&version) && (version == 1 || version == kSnapshotVersion) &&
            r.GetString(&s.meta.id) && r.GetString(&s.meta.tenant) &&
            r.GetString(&s.meta.backend) && r.Get(&s.meta.max_query_results) &&
            r.Get(&s.meta.threads) && r.Get(&s.meta.idle_ttl_seconds) &&
@@ -461,7 +490,10 @@ std::vector<RestoredSession> SessionStore::LoadAll(
       if (ok) {
         s.meta.client_ids.resize(nids);
         for (uint64_t& id : s.meta.client_ids) r.Get(&id);
-        ok = r.done() && Key(s.meta.tenant, s.meta.id) == name;
+        uint8_t policy = nids > 0 ? 1 : 0;
+        if (version >= 2) ok = r.Get(&policy);
+        s.meta.client_id_policy = policy != 0;
+        ok = ok && r.done() && Key(s.meta.tenant, s.meta.id) == name;
       }
     }
     if (!ok) {

@@ -7,7 +7,8 @@
 //   * snapshot: the session's metadata and the positions of every point at
 //     one step; written to snapshot.tmp, fsynced, renamed over the old one
 //     (the directory fsynced too), so a crash leaves the old or the new one.
-//   * journal: one record per step (its number and batch) appended before
+//   * journal: one record per step (its number and batch: moves, points
+//     that leave and join, the joining points' client ids) appended before
 //     the step is applied; a step that then fails (cancelled, bad values)
 //     gets an abort record. --fsync=always syncs before the step is
 //     acknowledged, everysec once a second (a background thread), no never.
@@ -50,7 +51,9 @@ struct SessionMeta {
   uint64_t idle_ttl_seconds = 0;
   uint64_t step = 0;
   absl::Time create_time;
-  std::vector<uint64_t> client_ids;  // empty: sequential ids
+  std::vector<uint64_t> client_ids;
+  // POINT_ID_POLICY_CLIENT (client_ids is empty when no point is left).
+  bool client_id_policy = false;
 };
 
 class SessionStore;
@@ -59,8 +62,10 @@ class SessionStore;
 class Journal {
  public:
   ~Journal();
-  // Appends step `step` (before it is applied); with kAlways also syncs.
-  absl::Status Append(uint64_t step, const core::DisplacementBatch& batch);
+  // Appends step `step` (before it is applied) with the client ids of its
+  // joining points (POINT_ID_POLICY_CLIENT); with kAlways also syncs.
+  absl::Status Append(uint64_t step, const core::DisplacementBatch& batch,
+                      const std::vector<uint64_t>& added_client_ids = {});
   // The step appended last was not applied.
   absl::Status Abort(uint64_t step);
   // Counts an applied step; true when the journal has grown past the
@@ -107,6 +112,7 @@ struct RestoredSession {
   struct Step {
     uint64_t step;
     core::DisplacementBatch batch;
+    std::vector<uint64_t> added_client_ids;
   };
   std::vector<Step> steps;  // journaled after the snapshot, in order
   uint64_t cut_bytes = 0;   // corrupt or truncated journal tail removed

@@ -90,7 +90,7 @@ v1::Session Describe(const Session& s) {
   v1::Session out;
   out.set_name(s.name());
   out.set_backend(s.backend());
-  out.set_point_count(s.point_count());
+  out.set_point_count(snap.tri->size());
   out.set_site_count(snap.tri->num_sites());
   out.set_step(snap.step);
   out.mutable_options()->set_backend(s.backend() == "cpu" ? v1::BACKEND_CPU
@@ -150,18 +150,38 @@ KinetriServiceImpl::RestoreReport KinetriServiceImpl::EnableDurability(
       continue;
     }
     uint64_t step = r.meta.step;
+    std::shared_ptr<const PointIdMap> ids;
+    if (r.meta.client_id_policy) {
+      ids = std::make_shared<const PointIdMap>(std::move(r.meta.client_ids));
+    }
     for (const RestoredSession::Step& s : r.steps) {
       if (s.step != step + 1) continue;  // covered by the snapshot
-      // A journaled step that fails again failed the first time too.
+      // A journaled step that fails again failed the first time too (its
+      // client ids were resolved before it was journaled).
+      std::shared_ptr<const PointIdMap> next_ids = ids;
+      if (ids != nullptr && (!s.batch.remove.empty() || !s.batch.add.empty())) {
+        auto after = ids->After(s.batch.remove, s.added_client_ids);
+        if (!after.ok()) continue;
+        next_ids = *std::move(after);
+      }
       if (tri->ApplyDisplacements(s.batch).ok()) {
         step = s.step;
+        ids = std::move(next_ids);
         ++report.steps_replayed;
       }
     }
     auto session = std::make_shared<Session>(
         r.meta.id, std::move(*tri), backend, r.meta.max_query_results,
-        r.meta.threads, std::move(r.meta.client_ids), std::move(*memory),
-        budget_);
+        r.meta.threads, std::move(ids), std::move(*memory), budget_);
+    {
+      Tenant t;
+      t.name = r.meta.tenant;
+      SessionRegistry* registry = registry_;
+      session->set_growth_limits(limits.max_points_per_session,
+                                 [registry, t](uint64_t more) {
+                                   return registry->CheckGrowth(more, t);
+                                 });
+    }
     session->RestoreStep(step, r.meta.create_time);
     session->set_idle_ttl(r.meta.idle_ttl_seconds);  // the clock restarts
     Tenant tenant;
@@ -425,7 +445,17 @@ grpc::Status KinetriServiceImpl::CreateSession(
   auto session = std::make_shared<Session>(
       id, std::move(*tri),
       on_device ? core::device::DeviceBackendName(limits.device) : "cpu",
-      max_results, threads, std::move(ids), std::move(*memory), budget_);
+      max_results, threads,
+      client_ids ? std::make_shared<const PointIdMap>(std::move(ids)) : nullptr,
+      std::move(*memory), budget_);
+  {
+    Tenant t = *tenant;
+    SessionRegistry* registry = registry_;
+    session->set_growth_limits(limits.max_points_per_session,
+                               [registry, t](uint64_t more) {
+                                 return registry->CheckGrowth(more, t);
+                               });
+  }
   session->set_idle_ttl(header.options().idle_ttl_seconds() > 0
                             ? header.options().idle_ttl_seconds()
                             : limits.default_idle_ttl_seconds);
@@ -564,20 +594,29 @@ grpc::Status KinetriServiceImpl::StreamSteps(
     }
     absl::Status st = assembler.Add(req);
     if (!st.ok()) return rpc.Done(ToGrpc(st));
-    // A step moves each point at most once: a stream that never ends its
-    // step cannot make the server buffer more than one step's worth.
-    if (assembler.size() > session->point_count()) {
+    // A step moves and removes each point at most once, and adds at most
+    // the session's limit: a stream that never ends its step cannot make
+    // the server buffer more than one step's worth.
+    if (assembler.size() > session->point_count() ||
+        assembler.removed() > session->point_count()) {
       return rpc.Done(grpc::Status(
           grpc::StatusCode::INVALID_ARGUMENT,
           absl::StrCat("step ", assembler.step(), ": more than ",
                        session->point_count(),
-                       " values (the session's point count) before "
-                       "end_of_step; not applied")));
+                       " values or removed points (the session's point "
+                       "count) before end_of_step; not applied")));
+    }
+    if (assembler.added() > registry_->limits().max_points_per_session) {
+      return rpc.Done(grpc::Status(
+          grpc::StatusCode::RESOURCE_EXHAUSTED,
+          absl::StrCat("step ", assembler.step(), ": more than ",
+                       registry_->limits().max_points_per_session,
+                       " points added (the limit per session); not applied")));
     }
     if (!req.end_of_step()) continue;
     const uint64_t step = assembler.step();
     const std::string request_id = assembler.request_id();
-    absl::StatusOr<core::DisplacementBatch> batch = assembler.Take(*session);
+    absl::StatusOr<AssembledStep> batch = assembler.Take(*session);
     if (!batch.ok()) return rpc.Done(ToGrpc(batch.status()));
     v1::StepResponse resp;
     // A client that cancels (or whose deadline passes) mid-step stops it;
@@ -585,14 +624,21 @@ grpc::Status KinetriServiceImpl::StreamSteps(
     const core::CancelToken cancel([ctx] { return ctx->IsCancelled(); },
                                    ToSteadyDeadline(ctx->deadline()));
     bool replayed = false;
-    auto report = session->ApplyStep(step, *batch, &cancel, nullptr, request_id,
-                                     &replayed);
+    auto report = session->ApplyStep(
+        step, std::move(batch->batch),
+        session->has_client_ids() ? &batch->client_ids : nullptr, &cancel,
+        nullptr, request_id, &replayed);
     session->Touch();
     if (!report.ok()) return rpc.Done(ToGrpc(report.status()));
     // A resent step (same request_id) gets its original acknowledgement.
     if (!replayed) metrics_->ObserveStep(session->backend(), *report);
     resp.set_step(step);
     *resp.mutable_stats() = ToProto(*report);
+    resp.mutable_stats()->set_point_count(session->point_count());
+    if (!session->has_client_ids() && report->added_points > 0) {
+      resp.mutable_stats()->set_first_added_id(session->point_count() -
+                                               report->added_points);
+    }
     if (!stream->Write(resp)) break;  // client went away; step is applied
   }
   if (idle.timed_out()) {
@@ -669,7 +715,7 @@ grpc::Status KinetriServiceImpl::Query(
     ids.resize(t.size());
     for (uint32_t i = 0; i < t.size(); ++i) ids[i] = i;
   } else if (req->has_point_ids()) {
-    auto resolved = ResolvePointIds(req->point_ids(), session);
+    auto resolved = ResolvePointIds(req->point_ids(), snap.ids.get());
     if (!resolved.ok()) return rpc.Done(ToGrpc(resolved.status()));
     ids = std::move(*resolved);
   }
@@ -716,7 +762,7 @@ grpc::Status KinetriServiceImpl::Query(
                                   ? std::max<uint64_t>(total_rows, 1)
                                   : std::max<uint64_t>(rows_per_chunk, 65536);
   const std::vector<uint64_t>* cids =
-      session.has_client_ids() ? &session.client_ids() : nullptr;
+      snap.ids != nullptr ? &snap.ids->ids() : nullptr;
   uint64_t produced = 0;
   double compute_seconds = 0.0;
   for (uint64_t first = 0; first < total_rows || first == 0;
@@ -793,13 +839,16 @@ grpc::Status KinetriServiceImpl::ExportTriangulation(
   if (!s.ok()) return rpc.Done(ToGrpc(s.status()));
   std::vector<core::Vec2> pos;
   std::vector<std::array<uint32_t, 3>> tris;
+  std::shared_ptr<const PointIdMap> ids;
   uint64_t step = 0;
   {
     const Session::Snapshot snap = (*s)->Read();
     step = snap.step;
     pos = snap.tri->Positions();
     tris = snap.tri->Triangles();
+    ids = snap.ids;
   }
+  static const std::vector<uint64_t> kNoIds;
   const size_t per =
       req->triangles_per_chunk() ? req->triangles_per_chunk() : 100000;
   size_t p = 0, t = 0;
@@ -813,7 +862,7 @@ grpc::Status KinetriServiceImpl::ExportTriangulation(
     r.set_total_points(pos.size());
     r.set_total_triangles(tris.size());
     const size_t pend = std::min(pos.size(), p + per);
-    const auto& cids = (*s)->client_ids();
+    const std::vector<uint64_t>& cids = ids != nullptr ? ids->ids() : kNoIds;
     for (; p < pend; ++p) {
       r.add_xy(pos[p].x);
       r.add_xy(pos[p].y);

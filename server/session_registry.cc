@@ -19,7 +19,7 @@ Session::ReturnMemoryOnDestroy::~ReturnMemoryOnDestroy() {
 
 Session::Session(std::string id, core::Triangulation tri, std::string backend,
                  uint64_t max_query_results, uint32_t threads,
-                 std::vector<uint64_t> client_ids,
+                 std::shared_ptr<const PointIdMap> client_ids,
                  MemoryBudget::Reservation memory, MemoryBudget* budget)
     : id_(std::move(id)),
       backend_(std::move(backend)),
@@ -27,31 +27,29 @@ Session::Session(std::string id, core::Triangulation tri, std::string backend,
       threads_(threads),
       create_time_(absl::Now()),
       point_count_(tri.size()),
-      client_ids_(std::move(client_ids)),
+      client_policy_(client_ids != nullptr),
       memory_(std::move(memory)),
       budget_(budget),
       current_(std::make_shared<core::Triangulation>(std::move(tri))),
       update_time_(create_time_) {
-  index_of_.reserve(client_ids_.size());
-  for (uint32_t i = 0; i < client_ids_.size(); ++i) {
-    index_of_.emplace(client_ids_[i], i);
-  }
+  ids_ = std::move(client_ids);
 }
 
 Session::Snapshot Session::Read() const {
   absl::MutexLock lock(&mu_);
   mu_.Await(absl::Condition(
       +[](const bool* in_place) { return !*in_place; }, &in_place_));
-  return Snapshot{current_, step_, update_time_};
+  return Snapshot{current_, step_, update_time_, ids_};
 }
 
 absl::StatusOr<core::StepReport> Session::ApplyStep(
-    uint64_t step, const core::DisplacementBatch& batch,
-    const core::CancelToken* cancel, bool* copied,
-    const std::string& request_id, bool* replayed) {
+    uint64_t step, core::DisplacementBatch batch,
+    const StepClientIds* client_ids, const core::CancelToken* cancel,
+    bool* copied, const std::string& request_id, bool* replayed) {
   absl::MutexLock write_lock(&write_mu_);
   std::shared_ptr<core::Triangulation> target;
   std::shared_ptr<const core::Triangulation> source;
+  std::shared_ptr<const PointIdMap> ids;  // the step before's
   if (replayed) *replayed = false;
   {
     absl::MutexLock lock(&mu_);
@@ -68,6 +66,64 @@ absl::StatusOr<core::StepReport> Session::ApplyStep(
           absl::StrCat("step: got ", step, ", expected ", step_ + 1,
                        " (steps apply in order)"));
     }
+    ids = ids_;
+  }
+  // Client ids name points of the step before this one: only this writer
+  // changes them, so they hold until the step is published.
+  std::shared_ptr<const PointIdMap> next_ids;
+  std::vector<uint64_t> added_ids;
+  if (ids != nullptr && client_ids != nullptr) {
+    batch.ids.resize(client_ids->moved.size());
+    for (size_t i = 0; i < client_ids->moved.size(); ++i) {
+      auto in = ids->IndexOf(client_ids->moved[i],
+                             absl::StrCat("client_ids[", i, "]"));
+      if (!in.ok()) return in.status();
+      batch.ids[i] = *in;
+    }
+    batch.remove.resize(client_ids->removed.size());
+    absl::flat_hash_map<uint32_t, size_t> removed_at;
+    for (size_t i = 0; i < client_ids->removed.size(); ++i) {
+      auto in = ids->IndexOf(client_ids->removed[i],
+                             absl::StrCat("remove_client_ids[", i, "]"));
+      if (!in.ok()) return in.status();
+      auto [it, fresh] = removed_at.emplace(*in, i);
+      if (!fresh) {
+        return absl::InvalidArgumentError(absl::StrCat(
+            "remove_client_ids[", i, "] = ", client_ids->removed[i],
+            " appears twice (also remove_client_ids[", it->second, "])"));
+      }
+      batch.remove[i] = *in;
+    }
+    added_ids = client_ids->added;
+  }
+  if (ids != nullptr && (!batch.remove.empty() || !added_ids.empty())) {
+    auto after = ids->After(batch.remove, added_ids);
+    if (!after.ok()) return after.status();
+    next_ids = *std::move(after);
+  }
+  // Growth beyond the creation's points is admitted and reserved first.
+  std::vector<MemoryBudget::Reservation> growth;
+  const uint64_t count = point_count_.load();
+  if (batch.add.size() > batch.remove.size()) {
+    const uint64_t more = batch.add.size() - batch.remove.size();
+    if (count + more > max_points_) {
+      return absl::ResourceExhaustedError(absl::StrCat(
+          "add: ", count, " points + ", more, " exceed the limit of ",
+          max_points_, " points per session"));
+    }
+    if (growth_check_) {
+      absl::Status st = growth_check_(more);
+      if (!st.ok()) return st;
+    }
+    if (budget_ != nullptr) {
+      auto r = budget_->Reserve(more * MemoryBudget::kSessionBytesPerPoint,
+                                absl::StrCat("add: ", more, " points"));
+      if (!r.ok()) return r.status();
+      growth.push_back(*std::move(r));
+    }
+  }
+  {
+    absl::MutexLock lock(&mu_);
     // Every reference a reader holds was taken under mu_, so a count of
     // one means nobody reads this triangulation, and nobody will until
     // in_place_ is cleared.
@@ -85,7 +141,7 @@ absl::StatusOr<core::StepReport> Session::ApplyStep(
     const uint64_t per_point =
         MemoryBudget::kCopyBytesPerPoint +
         (backend_ == "emulated" ? core::device::kDeviceBytesPerPoint : 0);
-    auto r = budget_->Reserve(point_count_ * per_point, "step copy");
+    auto r = budget_->Reserve(count * per_point, "step copy");
     if (r.ok()) {
       copy_memory = std::move(*r);
     } else {
@@ -118,7 +174,7 @@ absl::StatusOr<core::StepReport> Session::ApplyStep(
   // Durable sessions: the step is journaled before it applies (a step the
   // journal cannot take is refused and changes nothing).
   if (journal_ != nullptr) {
-    absl::Status st = journal_->Append(step, batch);
+    absl::Status st = journal_->Append(step, batch, added_ids);
     if (!st.ok()) {
       absl::MutexLock lock(&mu_);
       in_place_ = false;
@@ -142,6 +198,9 @@ absl::StatusOr<core::StepReport> Session::ApplyStep(
     if (report.ok()) {
       step_ = step;
       update_time_ = absl::Now();
+      if (next_ids != nullptr) ids_ = std::move(next_ids);
+      point_count_ = target->size();
+      for (auto& r : growth) growth_memory_.push_back(std::move(r));
       if (!request_id.empty()) {
         applied_.push_back({step, request_id, *report});
         if (applied_.size() > kRememberedSteps) applied_.pop_front();
@@ -184,18 +243,12 @@ SessionMeta Session::Meta(uint64_t step) const {
   m.idle_ttl_seconds = idle_ttl_seconds_;
   m.step = step;
   m.create_time = create_time_;
-  m.client_ids = client_ids_;
-  return m;
-}
-
-absl::StatusOr<uint32_t> Session::IndexOf(uint64_t client_id,
-                                          const std::string& field) const {
-  auto it = index_of_.find(client_id);
-  if (it == index_of_.end()) {
-    return absl::NotFoundError(
-        absl::StrCat(field, " = ", client_id, ": no such point"));
+  {
+    absl::MutexLock lock(&mu_);
+    if (ids_ != nullptr) m.client_ids = ids_->ids();
+    m.client_id_policy = client_policy_;
   }
-  return it->second;
+  return m;
 }
 
 namespace {
@@ -257,7 +310,8 @@ std::string Key(const std::string& tenant, const std::string& id) {
 }  // namespace
 
 absl::Status SessionRegistry::CheckTenantLocked(uint64_t points,
-                                                const Tenant& tenant) const {
+                                                const Tenant& tenant,
+                                                bool new_session) const {
   if (tenant.max_sessions == 0 && tenant.max_points == 0 &&
       tenant.max_memory_mb == 0) {
     return absl::OkStatus();
@@ -269,7 +323,8 @@ absl::Status SessionRegistry::CheckTenantLocked(uint64_t points,
     ++sessions;
     total += it->second->point_count();
   }
-  if (tenant.max_sessions != 0 && sessions >= tenant.max_sessions) {
+  if (new_session && tenant.max_sessions != 0 &&
+      sessions >= tenant.max_sessions) {
     return absl::ResourceExhaustedError(
         absl::StrCat("tenant ", tenant.name, " holds its maximum of ",
                      tenant.max_sessions, " sessions; delete one first"));
@@ -288,6 +343,12 @@ absl::Status SessionRegistry::CheckTenantLocked(uint64_t points,
         " exceed its limit of ", tenant.max_points, " points"));
   }
   return absl::OkStatus();
+}
+
+absl::Status SessionRegistry::CheckGrowth(uint64_t points,
+                                          const Tenant& tenant) const {
+  absl::MutexLock lock(&mu_);
+  return CheckTenantLocked(points, tenant, /*new_session=*/false);
 }
 
 absl::Status SessionRegistry::CheckCapacity(uint64_t points,

@@ -5,6 +5,7 @@
 #include <atomic>
 #include <cstdint>
 #include <deque>
+#include <functional>
 #include <map>
 #include <memory>
 #include <string>
@@ -19,6 +20,7 @@
 #include "server/auth.h"
 #include "server/memory_budget.h"
 #include "server/persistence.h"
+#include "server/point_id_map.h"
 
 namespace kinetri::server {
 
@@ -47,12 +49,13 @@ struct ServerLimits {
 // their snapshot until they finish.
 class Session {
  public:
-  // client_ids: empty for sequential ids, else one distinct id per point.
+  // client_ids: null for sequential ids (POINT_ID_POLICY_CLIENT: the id of
+  // each point).
   // `memory` (kept for the session's life) is its share of the server's
   // budget; `budget` (optional) is asked for the copies steps make.
   Session(std::string id, core::Triangulation tri, std::string backend,
           uint64_t max_query_results, uint32_t threads,
-          std::vector<uint64_t> client_ids = {},
+          std::shared_ptr<const PointIdMap> client_ids = nullptr,
           MemoryBudget::Reservation memory = {},
           MemoryBudget* budget = nullptr);
 
@@ -65,14 +68,21 @@ class Session {
   uint64_t max_query_results() const { return max_query_results_; }
   uint32_t threads() const { return threads_; }
   absl::Time create_time() const { return create_time_; }
-  uint64_t point_count() const { return point_count_; }
+  // Points at the current step (points join and leave with steps).
+  uint64_t point_count() const { return point_count_.load(); }
 
-  // POINT_ID_POLICY_CLIENT: the client's id of each point and back.
-  bool has_client_ids() const { return !client_ids_.empty(); }
-  const std::vector<uint64_t>& client_ids() const { return client_ids_; }
-  // NOT_FOUND naming `field` when the id is unknown.
-  absl::StatusOr<uint32_t> IndexOf(uint64_t client_id,
-                                   const std::string& field) const;
+  // POINT_ID_POLICY_CLIENT: points are named by the client's ids (the map
+  // of each step comes with its Snapshot).
+  bool has_client_ids() const { return client_policy_; }
+
+  // Growth (points that join beyond those that leave) is admitted up to
+  // `max_points` and by `check` (the tenant's quota), and reserved from the
+  // memory budget; set before the session takes steps.
+  void set_growth_limits(uint64_t max_points,
+                         std::function<absl::Status(uint64_t)> check) {
+    max_points_ = max_points;
+    growth_check_ = std::move(check);
+  }
 
   // Idle expiry (0: never). Touch() marks an access.
   void set_idle_ttl(uint64_t seconds) { idle_ttl_seconds_ = seconds; }
@@ -104,25 +114,32 @@ class Session {
     std::shared_ptr<const core::Triangulation> tri;
     uint64_t step = 0;
     absl::Time update_time;
+    // POINT_ID_POLICY_CLIENT: the client ids of this step's points.
+    std::shared_ptr<const PointIdMap> ids;
   };
   // The current step, immutable for as long as the caller holds it.
   Snapshot Read() const;
 
   // Applies `batch` as step number `step` (FAILED_PRECONDITION unless it is
-  // the next one). On any error, cancellation included, the session stays
-  // at its previous step. `copied` (optional): the step moved a copy
-  // because readers held the current step. When the memory budget has no
-  // room for a copy, the step waits for the readers instead (new readers
-  // wait behind it).
+  // the next one). POINT_ID_POLICY_CLIENT sessions name the points of the
+  // step in `client_ids` (resolved here, against the ids of the step
+  // before; batch.ids and batch.remove are then filled from them). On any
+  // error, cancellation included, the session stays at its previous step.
+  // `copied` (optional): the step moved a copy because readers held the current
+  // step. When the memory budget has no room for a copy, the step waits for the
+  // readers instead (new readers wait behind it).
   //
   // `request_id` (optional) names the step: a step already applied under
   // the same number and request_id (among the last kRememberedSteps) is
   // not applied again; its original report is returned and `*replayed`
   // (optional) is set.
-  absl::StatusOr<core::StepReport> ApplyStep(
-      uint64_t step, const core::DisplacementBatch& batch,
-      const core::CancelToken* cancel, bool* copied = nullptr,
-      const std::string& request_id = "", bool* replayed = nullptr);
+  absl::StatusOr<core::StepReport> ApplyStep(uint64_t step,
+                                             core::DisplacementBatch batch,
+                                             const StepClientIds* client_ids,
+                                             const core::CancelToken* cancel,
+                                             bool* copied = nullptr,
+                                             const std::string& request_id = "",
+                                             bool* replayed = nullptr);
   static constexpr size_t kRememberedSteps = 64;
 
  private:
@@ -139,11 +156,14 @@ class Session {
   const uint64_t max_query_results_;
   const uint32_t threads_;
   absl::Time create_time_;
-  const uint64_t point_count_;
-  const std::vector<uint64_t> client_ids_;
-  absl::flat_hash_map<uint64_t, uint32_t> index_of_;
+  std::atomic<uint64_t> point_count_;
+  const bool client_policy_;
+  uint64_t max_points_ = UINT64_MAX;
+  std::function<absl::Status(uint64_t)> growth_check_;
 
   MemoryBudget::Reservation memory_;
+  // Reserved for points that joined beyond the creation's count.
+  std::vector<MemoryBudget::Reservation> growth_memory_;
   MemoryBudget* const budget_;
   std::unique_ptr<Journal> journal_;
   uint64_t idle_ttl_seconds_ = 0;
@@ -151,6 +171,7 @@ class Session {
   absl::Mutex write_mu_;  // one step at a time
   mutable absl::Mutex mu_;
   std::shared_ptr<core::Triangulation> current_ ABSL_GUARDED_BY(mu_);
+  std::shared_ptr<const PointIdMap> ids_ ABSL_GUARDED_BY(mu_);
   bool in_place_ ABSL_GUARDED_BY(mu_) = false;  // a step moves current_
   uint64_t step_ ABSL_GUARDED_BY(mu_) = 0;
   // The last kRememberedSteps steps applied with a request_id.
@@ -177,6 +198,8 @@ class SessionRegistry {
                                                const Tenant& tenant = {});
   // Checks that one more session of `points` would fit (before building it).
   absl::Status CheckCapacity(uint64_t points, const Tenant& tenant = {}) const;
+  // Checks that the tenant's sessions may hold `points` more points.
+  absl::Status CheckGrowth(uint64_t points, const Tenant& tenant) const;
   // NOT_FOUND (naming the session) if absent; name is "sessions/{id}".
   absl::StatusOr<std::shared_ptr<Session>> Get(
       const std::string& name, const std::string& tenant = "") const;
@@ -197,7 +220,9 @@ class SessionRegistry {
  private:
   const ServerLimits limits_;
   mutable absl::Mutex mu_;
-  absl::Status CheckTenantLocked(uint64_t points, const Tenant& tenant) const
+  // `points` more for the tenant (in a new session unless !new_session).
+  absl::Status CheckTenantLocked(uint64_t points, const Tenant& tenant,
+                                 bool new_session = true) const
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
   // Key: "tenant/id" ("id" for the unnamed tenant); tenant names and ids
   // contain no '/'.
