@@ -70,7 +70,10 @@ absl::Status StepAssembler::Add(const v1::StepRequest& chunk) {
                             chunk.remove_client_ids().end());
   add_client_ids_.insert(add_client_ids_.end(), chunk.add_client_ids().begin(),
                          chunk.add_client_ids().end());
-  if (sparse_) {
+  // (Chunks with only points that leave or join carry no moves.)
+  const bool moves =
+      chunk.xy_size() > 0 || chunk.ids_size() > 0 || chunk.client_ids_size() > 0;
+  if (sparse_ && moves) {
     if (client != client_) {
       return absl::InvalidArgumentError(
           "client_ids: every chunk of a step uses the same kind of ids");

@@ -33,7 +33,9 @@ ABSL_FLAG(int, k, 4, "query knn: k");
 ABSL_FLAG(double, r, 0.01, "query radius: r");
 ABSL_FLAG(std::string, ids, "",
           "query: comma-separated point ids (default: all points, or the "
-          "positions in --csv)");
+          "positions in --csv); remove: the points that leave; add: the "
+          "client ids of the joining points (POINT_ID_POLICY_CLIENT "
+          "sessions)");
 ABSL_FLAG(std::string, out, "-",
           "export: file to write ('-': standard output)");
 ABSL_FLAG(std::string, format, "text",
@@ -52,6 +54,9 @@ const char kUsage[] =
     "  stats    --session=sessions/ID   (every session field, one per line)\n"
     "  delete   --session=sessions/ID\n"
     "  move     --session=... (--csv=deltas.csv | --sigma=S) [--steps=N]\n"
+    "  add      --session=... --csv=points.csv [--ids=7,8,9 (client ids)]\n"
+    "           one step in which these points join\n"
+    "  remove   --session=... --ids=1,2,3   one step in which they leave\n"
     "  query    --session=... --kind=nearest|knn|radius [--k=K] [--r=R]\n"
     "           [--ids=1,2,3 | --csv=queries.csv]\n"
     "           prints row,query_id,rank,neighbour,distance (row: position\n"
@@ -127,8 +132,10 @@ int main(int argc, char** argv) {
     return Usage(std::string("unexpected argument '") + args[2] + "'");
   }
   const std::string cmd = args[1];
-  static const char* kCommands[] = {"create", "list", "get",   "stats",
-                                    "delete", "move", "query", "export"};
+  static const char* kCommands[] = {"create", "list",  "get",
+                                    "stats",  "delete", "move",
+                                    "add",    "remove", "query",
+                                    "export"};
   if (std::find(std::begin(kCommands), std::end(kCommands), cmd) ==
       std::end(kCommands)) {
     return Usage("unknown command '" + cmd + "'");
@@ -228,6 +235,77 @@ int main(int argc, char** argv) {
     }
     const absl::Status st = (*stream)->Finish();
     if (!st.ok()) return Fail(st);
+  } else if (cmd == "add" || cmd == "remove") {
+    if (cmd == "add" && csv.empty()) {
+      return Usage("add: --csv=points.csv (x,y rows) is required");
+    }
+    if (cmd == "remove" && absl::GetFlag(FLAGS_ids).empty()) {
+      return Usage("remove: --ids=1,2,3 is required");
+    }
+    std::vector<uint64_t> ids;
+    if (!absl::GetFlag(FLAGS_ids).empty()) {
+      for (absl::string_view f :
+           absl::StrSplit(absl::GetFlag(FLAGS_ids), ',')) {
+        uint64_t id;
+        if (!absl::SimpleAtoi(f, &id)) {
+          return Usage(cmd + ": --ids: bad id '" + std::string(f) + "'");
+        }
+        ids.push_back(id);
+      }
+    }
+    auto s = client.GetSession(session);
+    if (!s.ok()) return Fail(s.status());
+    const bool client_ids = s->options().point_id_policy() ==
+                            kinetri::v1::POINT_ID_POLICY_CLIENT;
+    kinetri::PointChanges changes;
+    if (cmd == "add") {
+      auto r = ReadCsv(csv);
+      if (!r.ok()) return FailLocal(r.status());
+      changes.add_xy = std::move(*r);
+      if (client_ids && 2 * ids.size() != changes.add_xy.size()) {
+        return Usage("add: this session names points by client id: --ids "
+                     "needs one id per row of --csv (" +
+                     std::to_string(changes.add_xy.size() / 2) + ")");
+      }
+      if (!client_ids && !ids.empty()) {
+        return Usage("add: this session numbers points itself; no --ids");
+      }
+      changes.add_client_ids = ids;
+    } else if (client_ids) {
+      changes.remove_client_ids = ids;
+    } else {
+      for (uint64_t id : ids) {
+        if (id > UINT32_MAX) {
+          return Usage("remove: --ids: " + std::to_string(id) +
+                       " is not a point id of this session");
+        }
+        changes.remove_ids.push_back(static_cast<uint32_t>(id));
+      }
+    }
+    auto stream = client.OpenSteps(session);
+    if (!stream.ok()) return Fail(stream.status());
+    auto ack = (*stream)->Change(std::move(changes));
+    if (!ack.ok()) return Fail(ack.status());
+    const auto& st = ack->stats();
+    std::printf("step %llu: %s, %u points %s, %llu points now",
+                (unsigned long long)ack->step(), st.path().c_str(),
+                cmd == "add" ? st.added_points() : st.removed_points(),
+                cmd == "add" ? "joined" : "left",
+                (unsigned long long)st.point_count());
+    if (cmd == "add" && !client_ids && st.added_points() > 0) {
+      std::printf(" (ids %llu..%llu)",
+                  (unsigned long long)st.first_added_id(),
+                  (unsigned long long)(st.first_added_id() +
+                                       st.added_points() - 1));
+    }
+    if (cmd == "remove" && !client_ids) {
+      std::printf(" (the others are numbered 0..%llu again, in order)",
+                  (unsigned long long)(st.point_count() ? st.point_count() - 1
+                                                        : 0));
+    }
+    std::printf("\n");
+    const absl::Status fin = (*stream)->Finish();
+    if (!fin.ok()) return Fail(fin);
   } else if (cmd == "query") {
     kinetri::v1::QueryRequest req;
     req.set_session(session);

@@ -384,6 +384,11 @@ absl::StatusOr<v1::StepResponse> StepStream::MoveTo(
   return Send(v1::DISPLACEMENT_MODE_ABSOLUTE, ids, xy);
 }
 
+absl::StatusOr<v1::StepResponse> StepStream::Change(PointChanges changes) {
+  next_changes_ = std::move(changes);
+  return Send(v1::DISPLACEMENT_MODE_DELTA, {}, {});
+}
+
 absl::StatusOr<v1::StepResponse> StepStream::Send(
     v1::DisplacementMode mode, const std::vector<uint32_t>& ids,
     const std::vector<double>& xy, const std::vector<uint64_t>* client_ids) {
@@ -395,17 +400,29 @@ absl::StatusOr<v1::StepResponse> StepStream::Send(
     return absl::InvalidArgumentError(
         absl::StrCat("xy: ", xy.size(), " values for ", ids.size(), " ids"));
   }
-  size_t i = 0;
-  bool first = true;
-  do {
-    v1::StepRequest req;
-    if (first) {
-      req.set_session(session_);
-      req.set_request_id(next_request_id_);
-    }
-    first = false;
-    req.set_step(next_step_);
-    req.set_mode(mode);
+  PointChanges changes = std::move(next_changes_);
+  next_changes_ = {};
+  if (changes.add_xy.size() % 2 != 0) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "add_xy: ", changes.add_xy.size(), " values is odd (x, y pairs)"));
+  }
+  if (!changes.add_client_ids.empty() &&
+      2 * changes.add_client_ids.size() != changes.add_xy.size()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("add_client_ids: ", changes.add_client_ids.size(),
+                     " ids for ", changes.add_xy.size() / 2, " points"));
+  }
+  // The moves first, then the leaving and joining points, each list cut
+  // into chunks of at most chunk_values_ values.
+  std::vector<v1::StepRequest> chunks;
+  auto chunk = [&]() -> v1::StepRequest& {
+    chunks.emplace_back();
+    chunks.back().set_step(next_step_);
+    chunks.back().set_mode(mode);
+    return chunks.back();
+  };
+  for (size_t i = 0; i < xy.size(); i += chunk_values_) {
+    v1::StepRequest& req = chunk();
     const size_t end = std::min(xy.size(), i + chunk_values_);
     req.mutable_xy()->Add(xy.begin() + i, xy.begin() + end);
     if (!ids.empty()) {
@@ -415,10 +432,38 @@ absl::StatusOr<v1::StepResponse> StepStream::Send(
       req.mutable_client_ids()->Add(client_ids->begin() + i / 2,
                                     client_ids->begin() + end / 2);
     }
-    req.set_end_of_step(end == xy.size());
-    i = end;
+  }
+  for (size_t i = 0; i < changes.remove_ids.size(); i += chunk_values_) {
+    const size_t end = std::min(changes.remove_ids.size(), i + chunk_values_);
+    chunk().mutable_remove_ids()->Add(changes.remove_ids.begin() + i,
+                                      changes.remove_ids.begin() + end);
+  }
+  for (size_t i = 0; i < changes.remove_client_ids.size();
+       i += chunk_values_) {
+    const size_t end =
+        std::min(changes.remove_client_ids.size(), i + chunk_values_);
+    chunk().mutable_remove_client_ids()->Add(
+        changes.remove_client_ids.begin() + i,
+        changes.remove_client_ids.begin() + end);
+  }
+  for (size_t i = 0; i < changes.add_xy.size(); i += chunk_values_) {
+    v1::StepRequest& req = chunk();
+    const size_t end = std::min(changes.add_xy.size(), i + chunk_values_);
+    req.mutable_add_xy()->Add(changes.add_xy.begin() + i,
+                              changes.add_xy.begin() + end);
+    if (!changes.add_client_ids.empty()) {
+      req.mutable_add_client_ids()->Add(
+          changes.add_client_ids.begin() + i / 2,
+          changes.add_client_ids.begin() + end / 2);
+    }
+  }
+  if (chunks.empty()) chunk();
+  chunks.front().set_session(session_);
+  chunks.front().set_request_id(next_request_id_);
+  chunks.back().set_end_of_step(true);
+  for (const v1::StepRequest& req : chunks) {
     if (!stream_->Write(req)) break;
-  } while (i < xy.size());
+  }
   next_request_id_.clear();
   v1::StepResponse resp;
   if (!stream_->Read(&resp)) {

@@ -35,6 +35,21 @@ struct Mesh {
   std::vector<uint64_t> point_ids;  // client ids of the positions, if any
 };
 
+// Points that leave and join with a step (after its moves; see
+// StepRequest). Sequential sessions name leaving points in remove_ids and
+// number joining points after the others (StepStats.first_added_id);
+// POINT_ID_POLICY_CLIENT sessions use remove_client_ids and name each
+// joining point in add_client_ids.
+struct PointChanges {
+  std::vector<uint32_t> remove_ids;
+  std::vector<uint64_t> remove_client_ids;
+  std::vector<double> add_xy;  // interleaved x, y
+  std::vector<uint64_t> add_client_ids;
+  bool empty() const {
+    return remove_ids.empty() && remove_client_ids.empty() && add_xy.empty();
+  }
+};
+
 // Sends one batch per simulation step on a long-lived stream.
 class StepStream {
  public:
@@ -57,6 +72,12 @@ class StepStream {
   // Absolute positions (dense if ids is empty).
   absl::StatusOr<v1::StepResponse> MoveTo(const std::vector<uint32_t>& ids,
                                           const std::vector<double>& xy);
+  // Points leave and join with the next step (sent with its moves).
+  void SetNextChanges(PointChanges changes) {
+    next_changes_ = std::move(changes);
+  }
+  // A step in which points only leave and join (nothing moves).
+  absl::StatusOr<v1::StepResponse> Change(PointChanges changes);
   // Names the next step (StepRequest.request_id): resending a step the
   // server already applied under this name (its acknowledgement was lost)
   // returns the original acknowledgement and applies nothing.
@@ -78,6 +99,7 @@ class StepStream {
   std::string session_;
   uint64_t next_step_;
   size_t chunk_values_;
+  PointChanges next_changes_;
   std::string next_request_id_;
   bool finished_ = false;
 };

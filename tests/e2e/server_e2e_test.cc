@@ -393,6 +393,185 @@ TEST_F(E2eTest, ClientIdPolicy) {
       absl::StatusCode::kInvalidArgument);
 }
 
+// Points join and leave with steps, on both id policies: after every step
+// the export equals a model of the documented numbering, the triangles are
+// CGAL's (by the core tests; here: the mesh is exported whole), and k-NN
+// answers equal brute force on the model.
+TEST_F(E2eTest, PointsJoinAndLeave) {
+  for (const bool with_client_ids : {false, true}) {
+    SCOPED_TRACE(with_client_ids ? "client ids" : "sequential ids");
+    std::mt19937_64 rng(with_client_ids ? 61 : 60);
+    std::vector<double> xy = Uniform(1500, with_client_ids ? 61 : 60);
+    std::vector<uint64_t> cid;
+    for (size_t i = 0; i < xy.size() / 2; ++i) cid.push_back(3 * i + (1ull << 40));
+    uint64_t next_cid = 1ull << 50;
+    auto s = with_client_ids
+                 ? client_->CreateSessionWithIds(xy, cid, v1::SessionOptions())
+                 : client_->CreateSession(xy, v1::SessionOptions());
+    ASSERT_TRUE(s.ok()) << s.status();
+    auto stream = client_->OpenSteps(s->name());
+    ASSERT_TRUE(stream.ok());
+    std::uniform_real_distribution<double> u(-0.1, 1.1);
+    for (int step = 1; step <= 6; ++step) {
+      SCOPED_TRACE(absl::StrCat("step ", step));
+      const size_t n = xy.size() / 2;
+      // Some points move (sparse), others leave, new ones join: inside,
+      // outside the hull, and on existing points.
+      std::vector<uint8_t> gone(n, 0);
+      PointChanges ch;
+      for (int k = 0; k < 60; ++k) {
+        const uint32_t id = rng() % n;
+        if (gone[id]) continue;
+        gone[id] = 1;
+        if (with_client_ids) {
+          ch.remove_client_ids.push_back(cid[id]);
+        } else {
+          ch.remove_ids.push_back(id);
+        }
+      }
+      std::vector<double> add;
+      for (int k = 0; k < 80; ++k) {
+        if (k % 10 == 0) {
+          const size_t j = rng() % n;
+          add.push_back(xy[2 * j]);
+          add.push_back(xy[2 * j + 1]);
+        } else {
+          add.push_back(u(rng));
+          add.push_back(u(rng));
+        }
+        if (with_client_ids) ch.add_client_ids.push_back(next_cid++);
+      }
+      // A removed client id joins again at a new place.
+      if (with_client_ids && !ch.remove_client_ids.empty()) {
+        ch.add_client_ids.back() = ch.remove_client_ids.front();
+      }
+      ch.add_xy = add;
+      std::vector<uint32_t> moved;
+      std::vector<uint64_t> moved_cid;
+      std::vector<double> d;
+      for (uint32_t i = 0; i < n; i += 13) {
+        if (gone[i]) continue;
+        moved.push_back(i);
+        moved_cid.push_back(cid[i]);
+        d.push_back(1e-4 * (i % 7));
+        d.push_back(-1e-4 * (i % 5));
+      }
+      (*stream)->SetNextChanges(ch);
+      auto ack = with_client_ids ? (*stream)->MoveByClientIds(moved_cid, d)
+                                 : (*stream)->MoveBy(moved, d);
+      ASSERT_TRUE(ack.ok()) << ack.status();
+      // The model.
+      for (size_t k = 0; k < moved.size(); ++k) {
+        xy[2 * moved[k]] += d[2 * k];
+        xy[2 * moved[k] + 1] += d[2 * k + 1];
+      }
+      std::vector<double> nxy;
+      std::vector<uint64_t> ncid;
+      for (size_t i = 0; i < n; ++i) {
+        if (gone[i]) continue;
+        nxy.push_back(xy[2 * i]);
+        nxy.push_back(xy[2 * i + 1]);
+        ncid.push_back(cid[i]);
+      }
+      const size_t survivors = nxy.size() / 2;
+      nxy.insert(nxy.end(), add.begin(), add.end());
+      ncid.insert(ncid.end(), ch.add_client_ids.begin(),
+                  ch.add_client_ids.end());
+      xy = nxy;
+      cid = ncid;
+      EXPECT_EQ(ack->stats().removed_points(),
+                ch.remove_ids.size() + ch.remove_client_ids.size());
+      EXPECT_EQ(ack->stats().added_points(), add.size() / 2);
+      EXPECT_EQ(ack->stats().point_count(), xy.size() / 2);
+      if (!with_client_ids) EXPECT_EQ(ack->stats().first_added_id(), survivors);
+      EXPECT_EQ(client_->GetSession(s->name())->point_count(), xy.size() / 2);
+      auto mesh = client_->Export(s->name());
+      ASSERT_TRUE(mesh.ok()) << mesh.status();
+      ASSERT_EQ(mesh->xy, xy);
+      if (with_client_ids) ASSERT_EQ(mesh->point_ids, cid);
+      // k-NN of every 37th point against brute force.
+      v1::QueryRequest q;
+      q.set_session(s->name());
+      q.set_kind(v1::QUERY_KIND_K_NEAREST);
+      q.set_k(4);
+      q.set_exclude_self(true);
+      std::vector<size_t> targets;
+      for (size_t i = 0; i < xy.size() / 2; i += 37) {
+        targets.push_back(i);
+        if (with_client_ids) {
+          q.mutable_point_ids()->add_client_ids(cid[i]);
+        } else {
+          q.mutable_point_ids()->add_ids(static_cast<uint32_t>(i));
+        }
+      }
+      auto res = client_->Query(q);
+      ASSERT_TRUE(res.ok()) << res.status();
+      for (size_t row = 0; row < targets.size(); ++row) {
+        auto want = Rank(xy, At(xy, targets[row]), targets[row]);
+        want.resize(4);
+        if (with_client_ids) {
+          std::vector<uint64_t> want_c, got;
+          for (uint32_t w : want) want_c.push_back(cid[w]);
+          got.assign(res->client_ids.begin() + res->offsets[row],
+                     res->client_ids.begin() + res->offsets[row + 1]);
+          ASSERT_EQ(got, want_c) << "row " << row;
+        } else {
+          ASSERT_EQ(Row(*res, row), want) << "row " << row;
+        }
+      }
+    }
+    // A step of changes only; then refusals that change nothing.
+    PointChanges only;
+    only.add_xy = {0.5, 0.5};
+    if (with_client_ids) only.add_client_ids = {7};
+    auto ack = (*stream)->Change(only);
+    ASSERT_TRUE(ack.ok()) << ack.status();
+    EXPECT_EQ(ack->stats().moved_points(), 0u);
+    const uint64_t count = xy.size() / 2 + 1;
+    EXPECT_EQ(ack->stats().point_count(), count);
+    PointChanges bad;
+    if (with_client_ids) {
+      bad.remove_client_ids = {123456789};
+    } else {
+      bad.remove_ids = {static_cast<uint32_t>(count)};
+    }
+    EXPECT_EQ((*stream)->Change(bad).status().code(),
+              absl::StatusCode::kNotFound);
+    stream = client_->OpenSteps(s->name());
+    bad = {};
+    bad.add_xy = {0.25, 0.25};
+    if (with_client_ids) {
+      bad.add_client_ids = {7};  // exists already
+      EXPECT_EQ((*stream)->Change(bad).status().code(),
+                absl::StatusCode::kAlreadyExists);
+    } else {
+      bad.add_client_ids = {7};  // sequential sessions name no points
+      EXPECT_EQ((*stream)->Change(bad).status().code(),
+                absl::StatusCode::kInvalidArgument);
+    }
+    stream = client_->OpenSteps(s->name());
+    bad = {};
+    bad.add_xy = {0.25, std::nan("")};
+    if (with_client_ids) bad.add_client_ids = {8};
+    EXPECT_EQ((*stream)->Change(bad).status().code(),
+              absl::StatusCode::kInvalidArgument);
+    auto now = client_->GetSession(s->name());
+    EXPECT_EQ(now->point_count(), count);
+    EXPECT_EQ(now->step(), 7u);
+    // Growth stops at the server's --max_points (200000).
+    stream = client_->OpenSteps(s->name());
+    bad = {};
+    bad.add_xy.assign(2 * 200000, 0.5);
+    if (with_client_ids) {
+      for (uint64_t i = 0; i < 200000; ++i) bad.add_client_ids.push_back(i + 100);
+    }
+    EXPECT_EQ((*stream)->Change(bad).status().code(),
+              absl::StatusCode::kResourceExhausted);
+    EXPECT_EQ(client_->GetSession(s->name())->point_count(), count);
+    ASSERT_TRUE(client_->DeleteSession(s->name()).ok());
+  }
+}
+
 TEST_F(E2eTest, MetricsMove) {
   const std::string before =
       testing::HttpGet(server_->metrics_port(), "/metrics");
