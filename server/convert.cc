@@ -71,8 +71,8 @@ absl::Status StepAssembler::Add(const v1::StepRequest& chunk) {
   add_client_ids_.insert(add_client_ids_.end(), chunk.add_client_ids().begin(),
                          chunk.add_client_ids().end());
   // (Chunks with only points that leave or join carry no moves.)
-  const bool moves =
-      chunk.xy_size() > 0 || chunk.ids_size() > 0 || chunk.client_ids_size() > 0;
+  const bool moves = chunk.xy_size() > 0 || chunk.ids_size() > 0 ||
+                     chunk.client_ids_size() > 0;
   if (sparse_ && moves) {
     if (client != client_) {
       return absl::InvalidArgumentError(

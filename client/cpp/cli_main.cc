@@ -132,10 +132,9 @@ int main(int argc, char** argv) {
     return Usage(std::string("unexpected argument '") + args[2] + "'");
   }
   const std::string cmd = args[1];
-  static const char* kCommands[] = {"create", "list",  "get",
-                                    "stats",  "delete", "move",
-                                    "add",    "remove", "query",
-                                    "export"};
+  static const char* kCommands[] = {"create", "list",  "get", "stats",
+                                    "delete", "move",  "add", "remove",
+                                    "query",  "export"};
   if (std::find(std::begin(kCommands), std::end(kCommands), cmd) ==
       std::end(kCommands)) {
     return Usage("unknown command '" + cmd + "'");
@@ -255,17 +254,18 @@ int main(int argc, char** argv) {
     }
     auto s = client.GetSession(session);
     if (!s.ok()) return Fail(s.status());
-    const bool client_ids = s->options().point_id_policy() ==
-                            kinetri::v1::POINT_ID_POLICY_CLIENT;
+    const bool client_ids =
+        s->options().point_id_policy() == kinetri::v1::POINT_ID_POLICY_CLIENT;
     kinetri::PointChanges changes;
     if (cmd == "add") {
       auto r = ReadCsv(csv);
       if (!r.ok()) return FailLocal(r.status());
       changes.add_xy = std::move(*r);
       if (client_ids && 2 * ids.size() != changes.add_xy.size()) {
-        return Usage("add: this session names points by client id: --ids "
-                     "needs one id per row of --csv (" +
-                     std::to_string(changes.add_xy.size() / 2) + ")");
+        return Usage(
+            "add: this session names points by client id: --ids "
+            "needs one id per row of --csv (" +
+            std::to_string(changes.add_xy.size() / 2) + ")");
       }
       if (!client_ids && !ids.empty()) {
         return Usage("add: this session numbers points itself; no --ids");
@@ -293,15 +293,14 @@ int main(int argc, char** argv) {
                 cmd == "add" ? "joined" : "left",
                 (unsigned long long)st.point_count());
     if (cmd == "add" && !client_ids && st.added_points() > 0) {
-      std::printf(" (ids %llu..%llu)",
-                  (unsigned long long)st.first_added_id(),
-                  (unsigned long long)(st.first_added_id() +
-                                       st.added_points() - 1));
+      std::printf(
+          " (ids %llu..%llu)", (unsigned long long)st.first_added_id(),
+          (unsigned long long)(st.first_added_id() + st.added_points() - 1));
     }
     if (cmd == "remove" && !client_ids) {
-      std::printf(" (the others are numbered 0..%llu again, in order)",
-                  (unsigned long long)(st.point_count() ? st.point_count() - 1
-                                                        : 0));
+      std::printf(
+          " (the others are numbered 0..%llu again, in order)",
+          (unsigned long long)(st.point_count() ? st.point_count() - 1 : 0));
     }
     std::printf("\n");
     const absl::Status fin = (*stream)->Finish();

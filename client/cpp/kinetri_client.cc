@@ -438,8 +438,7 @@ absl::StatusOr<v1::StepResponse> StepStream::Send(
     chunk().mutable_remove_ids()->Add(changes.remove_ids.begin() + i,
                                       changes.remove_ids.begin() + end);
   }
-  for (size_t i = 0; i < changes.remove_client_ids.size();
-       i += chunk_values_) {
+  for (size_t i = 0; i < changes.remove_client_ids.size(); i += chunk_values_) {
     const size_t end =
         std::min(changes.remove_client_ids.size(), i + chunk_values_);
     chunk().mutable_remove_client_ids()->Add(

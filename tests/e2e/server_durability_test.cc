@@ -225,6 +225,95 @@ TEST_F(DurabilityTest, EverySecondLosesAtMostAboutOneSecond) {
                 "everysec");
 }
 
+// Points that joined and left survive restarts: replayed from the journal
+// (with their client ids), and from snapshots (compaction every 2 steps),
+// including a client-id session that has no point left.
+TEST_F(DurabilityTest, JoinsAndLeavesAreRestored) {
+  for (const int interval : {0, 2}) {
+    SCOPED_TRACE(interval ? "snapshots" : "journal");
+    Start("always", interval);
+    std::vector<double> seq = testing::UniformXY(500, 8);
+    ASSERT_TRUE(client_->CreateSession(seq, v1::SessionOptions(), "seq").ok());
+    std::vector<double> cxy = testing::UniformXY(4, 9);
+    std::vector<uint64_t> cid = {10, 11, 12, 13};
+    ASSERT_TRUE(
+        client_->CreateSessionWithIds(cxy, cid, v1::SessionOptions(), "cid")
+            .ok());
+    auto a = client_->OpenSteps("sessions/seq");
+    auto b = client_->OpenSteps("sessions/cid");
+    ASSERT_TRUE(a.ok() && b.ok());
+    std::mt19937_64 rng(10);
+    std::uniform_real_distribution<double> u(0, 1);
+    for (int step = 1; step <= 5; ++step) {
+      PointChanges ch;
+      std::vector<uint8_t> gone(seq.size() / 2, 0);
+      for (int k = 0; k < 20; ++k) {
+        const uint32_t id = rng() % (seq.size() / 2);
+        if (!gone[id]) ch.remove_ids.push_back(id);
+        gone[id] = 1;
+      }
+      for (int k = 0; k < 30; ++k) ch.add_xy.push_back(u(rng));
+      std::vector<double> next;
+      for (size_t i = 0; i < gone.size(); ++i) {
+        if (gone[i]) continue;
+        next.push_back(seq[2 * i]);
+        next.push_back(seq[2 * i + 1]);
+      }
+      next.insert(next.end(), ch.add_xy.begin(), ch.add_xy.end());
+      ASSERT_TRUE((*a)->Change(ch).ok());
+      seq = next;
+    }
+    // The client-id session: all four leave, two join, then one more.
+    PointChanges ch;
+    ch.remove_client_ids = {10, 11, 12, 13};
+    ASSERT_TRUE((*b)->Change(ch).ok());
+    ch = {};
+    ch.add_xy = {0.5, 0.5, 0.25, 0.75};
+    ch.add_client_ids = {13, 99};
+    ASSERT_TRUE((*b)->Change(ch).ok());
+    ch = {};
+    ch.add_xy = {0.75, 0.25};
+    ch.add_client_ids = {5};
+    ASSERT_TRUE((*b)->Change(ch).ok());
+    server_->Kill();
+    Start("always", interval);
+    ExpectSession(*client_, "sessions/seq", 5, seq, "restored");
+    auto mesh = client_->Export("sessions/cid");
+    ASSERT_TRUE(mesh.ok()) << mesh.status();
+    EXPECT_EQ(mesh->xy,
+              (std::vector<double>{0.5, 0.5, 0.25, 0.75, 0.75, 0.25}));
+    EXPECT_EQ(mesh->point_ids, (std::vector<uint64_t>{13, 99, 5}));
+    EXPECT_EQ(client_->GetSession("sessions/cid")->options().point_id_policy(),
+              v1::POINT_ID_POLICY_CLIENT);
+    // Empty, it is still a client-id session after a restart.
+    b = client_->OpenSteps("sessions/cid");
+    ch = {};
+    ch.remove_client_ids = {13, 99, 5};
+    ASSERT_TRUE((*b)->Change(ch).ok());
+    ASSERT_TRUE((*b)->Finish().ok());
+    client_.reset();                    // no open connection to drain
+    ASSERT_TRUE(server_->Stop() == 0);  // drain: snapshot of the empty set
+    Start("always", interval);
+    auto s = client_->GetSession("sessions/cid");
+    ASSERT_TRUE(s.ok()) << s.status();
+    EXPECT_EQ(s->point_count(), 0u);
+    EXPECT_EQ(s->options().point_id_policy(), v1::POINT_ID_POLICY_CLIENT);
+    b = client_->OpenSteps("sessions/cid");
+    ch = {};
+    ch.add_xy = {0.5, 0.5};
+    ch.add_client_ids = {77};
+    auto ack = (*b)->Change(ch);
+    ASSERT_TRUE(ack.ok()) << ack.status();
+    EXPECT_EQ(client_->Export("sessions/cid")->point_ids,
+              std::vector<uint64_t>{77});
+    ASSERT_TRUE((*b)->Finish().ok());
+    client_.reset();
+    server_.reset();
+    fs::remove_all(dir_);
+    dir_ = TempDir();
+  }
+}
+
 // A truncated journal is cut at its last whole record; a corrupt snapshot
 // makes only that session unavailable (DATA_LOSS) until it is deleted.
 TEST_F(DurabilityTest, CorruptAndTruncatedFiles) {

@@ -403,7 +403,8 @@ TEST_F(E2eTest, PointsJoinAndLeave) {
     std::mt19937_64 rng(with_client_ids ? 61 : 60);
     std::vector<double> xy = Uniform(1500, with_client_ids ? 61 : 60);
     std::vector<uint64_t> cid;
-    for (size_t i = 0; i < xy.size() / 2; ++i) cid.push_back(3 * i + (1ull << 40));
+    for (size_t i = 0; i < xy.size() / 2; ++i)
+      cid.push_back(3 * i + (1ull << 40));
     uint64_t next_cid = 1ull << 50;
     auto s = with_client_ids
                  ? client_->CreateSessionWithIds(xy, cid, v1::SessionOptions())
@@ -563,7 +564,8 @@ TEST_F(E2eTest, PointsJoinAndLeave) {
     bad = {};
     bad.add_xy.assign(2 * 200000, 0.5);
     if (with_client_ids) {
-      for (uint64_t i = 0; i < 200000; ++i) bad.add_client_ids.push_back(i + 100);
+      for (uint64_t i = 0; i < 200000; ++i)
+        bad.add_client_ids.push_back(i + 100);
     }
     EXPECT_EQ((*stream)->Change(bad).status().code(),
               absl::StatusCode::kResourceExhausted);
