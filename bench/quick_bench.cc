@@ -29,6 +29,9 @@ ABSL_FLAG(int, steps, 5, "number of Brownian steps to time");
 ABSL_FLAG(double, sigma, 0.1,
           "Brownian step standard deviation, in units of the mean spacing "
           "1/sqrt(n)");
+ABSL_FLAG(double, churn, 0.01,
+          "then time steps in which this fraction of the points leave and as "
+          "many new ones join (0: skip)");
 ABSL_FLAG(int, threads, 0, "worker threads for Kinetri (0 = all cores)");
 ABSL_FLAG(uint64_t, seed, 1, "random seed");
 ABSL_FLAG(std::string, executor, "regions",
@@ -171,6 +174,38 @@ int main(int argc, char** argv) {
         rep->fallback_reason.c_str(), cg, up / cg);
     std::fflush(stdout);
   }
+  // Churn: points leave and join (uniformly at random), against a rebuild.
+  const double churn = absl::GetFlag(FLAGS_churn);
+  double churn_total = 0.0, churn_cgal = 0.0;
+  if (churn > 0.0) {
+    for (int s = 0; s < steps; ++s) {
+      kinetri::core::DisplacementBatch b;
+      const uint32_t k = static_cast<uint32_t>(churn * n);
+      std::vector<uint8_t> gone(n, 0);
+      while (b.remove.size() < k) {
+        const uint32_t id = rng() % n;
+        if (!gone[id]) b.remove.push_back(id);
+        gone[id] = 1;
+      }
+      for (uint32_t j = 0; j < k; ++j) b.add.push_back({u(rng), u(rng)});
+      t0 = Clock::now();
+      auto rep = tri->ApplyDisplacements(b);
+      const double up = Seconds(t0);
+      if (!rep.ok()) {
+        std::fprintf(stderr, "%s\n", rep.status().ToString().c_str());
+        return 1;
+      }
+      const double cg = CgalBuild(tri->Positions());
+      churn_total += up;
+      churn_cgal += cg;
+      std::printf(
+          "churn step %d: %u left, %u joined in %.4f s (%s, re-insert %.3f "
+          "s, Delaunay flips %llu) | CGAL rebuild %.4f s | ratio %.3f\n",
+          s, rep->removed_points, rep->added_points, up,
+          kinetri::core::UpdatePathName(rep->path), rep->reinsert_seconds,
+          (unsigned long long)rep->flips.delaunay, cg, up / cg);
+    }
+  }
   t0 = Clock::now();
   auto nn = kinetri::core::AllNearestNeighbors(*tri);
   const double nn_s = Seconds(t0);
@@ -182,6 +217,11 @@ int main(int argc, char** argv) {
       "update: mean %.4f s vs CGAL rebuild %.4f s -> ratio %.4f "
       "(goal < 0.05)\n",
       update_total / steps, cgal_total / steps, up_ratio);
+  if (churn > 0.0) {
+    std::printf(
+        "churn %.3g: mean %.4f s vs CGAL rebuild %.4f s -> ratio %.4f\n", churn,
+        churn_total / steps, churn_cgal / steps, churn_total / churn_cgal);
+  }
   std::printf(
       "all-points NN: %.4f s vs nanoflann build %.4f s + query "
       "%.4f s = %.4f s -> ratio %.4f (goal < 0.033)\n",

@@ -50,14 +50,8 @@ void Mesh::RenumberVertices(const std::vector<uint32_t>& new_of_old) {
   RebuildVertexEdges();
 }
 
-void Mesh::RenumberVertices(const std::vector<uint32_t>& new_of_old,
-                            uint32_t num_vertices) {
+void Mesh::ResizeVertices(uint32_t num_vertices) {
   num_vertices_ = num_vertices;
-  RenumberVertices(new_of_old);
-}
-
-void Mesh::AddVertices(uint32_t count) {
-  num_vertices_ += count;
   vertex_edge_.resize(num_vertices_, kNoEdge);
 }
 

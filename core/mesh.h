@@ -157,13 +157,10 @@ class Mesh {
   void RebuildVertexEdges();
 
   // Renames vertices: new id = new_of_old[old]. kInfiniteVertex is kept.
-  // With num_vertices, the vertex count changes too (vertices that leave
-  // must not be in any triangle).
   void RenumberVertices(const std::vector<uint32_t>& new_of_old);
-  void RenumberVertices(const std::vector<uint32_t>& new_of_old,
-                        uint32_t num_vertices);
-  // More vertices (not yet in any triangle: vertex_edge kNoEdge).
-  void AddVertices(uint32_t count);
+  // Changes the number of vertices: new ones are in no triangle yet
+  // (vertex_edge kNoEdge); vertices that go must be in none.
+  void ResizeVertices(uint32_t num_vertices);
   // Renames vertex `from` (in the mesh) to `to` (in none): every half-edge
   // leaving it, and its vertex_edge.
   void RelabelVertex(uint32_t from, uint32_t to);

@@ -565,7 +565,10 @@ bool Triangulation::InsertBatch(std::vector<uint32_t> pending,
         },
         16);
     // Coincident points join sites; one new vertex per triangle per round.
-    owner.assign(mesh_.num_triangles(), kNoVertex);
+    // (Slots taken last round are cleared; the array only grows.)
+    if (owner.size() < mesh_.num_triangles()) {
+      owner.resize(mesh_.num_triangles(), kNoVertex);
+    }
     std::vector<uint32_t> split, deferred;
     bool outside_taken = false;
     for (size_t i = 0; i < pending.size(); ++i) {
@@ -602,6 +605,7 @@ bool Triangulation::InsertBatch(std::vector<uint32_t> pending,
         deferred.push_back(v);
       }
     }
+    for (uint32_t i : split) owner[loc[i].triangle] = kNoVertex;
     if (split.empty()) break;
     std::vector<uint32_t> inserted, touched;
     for (uint32_t i : split) {
@@ -984,8 +988,20 @@ bool Triangulation::JoinAndLeave(const std::vector<uint32_t>& leaving,
   MeshChangedOnHost();
   // Start sites for locating the joining points (taken before any site
   // leaves; a hint that left is skipped by InsertBatch).
+  // Every k-th site, about 16 per joining point: a walk from the hint then
+  // takes a few steps, and the grid costs O(m), not O(n).
   std::optional<HintGrid> grid;
-  if (m > 64) grid.emplace(view());
+  if (m > 64) {
+    const size_t stride = std::max<size_t>(1, sites_.size() / (16 * size_t{m}));
+    std::vector<uint32_t> sample;
+    for (size_t i = 0; i < sites_.size(); i += stride) {
+      sample.push_back(sites_[i]);
+    }
+    TriangulationView v = view();
+    v.sites = sample.data();
+    v.num_sites = static_cast<uint32_t>(sample.size());
+    grid.emplace(v);
+  }
   // 1. Leave. A hidden coincident point leaves its chain; a site's
   //    representative hands the mesh vertex to the next point of its site;
   //    a point alone at its position is removed from the mesh (its star
@@ -1032,7 +1048,7 @@ bool Triangulation::JoinAndLeave(const std::vector<uint32_t>& leaving,
       dup_next_.push_back(kNoVertex);
       ext_of_int_.push_back(kNoVertex);
     }
-    mesh_.AddVertices(m);
+    mesh_.ResizeVertices(n + m);
     std::vector<uint32_t> hints(n + m, kNoVertex);
     if (grid) {
       const HintGridView g = grid->view();
@@ -1054,44 +1070,63 @@ bool Triangulation::JoinAndLeave(const std::vector<uint32_t>& leaving,
     }
   }
   if (mesh_.has_free_triangles()) mesh_.Compact();
-  // 3. Renumber: the remaining points keep their internal (spatial) order,
-  //    the joining ones follow; external ids close the gaps in order.
+  // 3. Renumber. Internally the last points fill the holes the leaving ones
+  //    left (their mesh vertices relabelled; the periodic renumbering
+  //    restores the spatial order); externally the remaining points keep
+  //    their order and close the gaps, the joining ones follow.
   const uint32_t total = n + m;
   const uint32_t n_new = total - static_cast<uint32_t>(leaving.size());
-  std::vector<uint32_t> new_ext_of_old(n, kNoVertex);
-  {
-    uint32_t next_ext = 0;
-    for (uint32_t ext = 0; ext < n; ++ext) {
-      if (!gone[int_of_ext_[ext]]) new_ext_of_old[ext] = next_ext++;
+  std::vector<uint32_t> holes;
+  for (uint32_t ext : leaving) holes.push_back(int_of_ext_[ext]);
+  std::sort(holes.begin(), holes.end());
+  std::vector<uint32_t> sorted_leaving = leaving;
+  std::sort(sorted_leaving.begin(), sorted_leaving.end());
+  // External ids: old id minus the leaving ids below it; joining points
+  // n - r + j.
+  ParallelFor(0, total, [&](size_t i) {
+    if (i < n && gone[i]) return;
+    const uint32_t e = ext_of_int_[i];
+    ext_of_int_[i] = i >= n
+                         ? n_new - m + static_cast<uint32_t>(i - n)
+                         : e - static_cast<uint32_t>(
+                                   std::lower_bound(sorted_leaving.begin(),
+                                                    sorted_leaving.end(), e) -
+                                   sorted_leaving.begin());
+  });
+  // Fill holes below n_new with the last live points.
+  uint32_t last = total;
+  auto live = [&](uint32_t i) { return i >= n || !gone[i]; };
+  for (uint32_t h : holes) {
+    if (h >= n_new) break;
+    do {
+      --last;
+    } while (!live(last));
+    if (last < h) break;
+    const uint32_t src = last;
+    pos_[h] = pos_[src];
+    ext_of_int_[h] = ext_of_int_[src];
+    dup_next_[h] = dup_next_[src];
+    if (rep_[src] == src) {
+      for (uint32_t x = h; x != kNoVertex; x = dup_next_[x]) rep_[x] = h;
+      mesh_.RelabelVertex(src, h);
+    } else {
+      rep_[h] = rep_[src];
+      uint32_t q = rep_[src];
+      while (dup_next_[q] != src) q = dup_next_[q];
+      dup_next_[q] = h;
     }
   }
-  std::vector<uint32_t> new_of_old(total, kNoVertex);
-  {
-    uint32_t next_int = 0;
-    for (uint32_t i = 0; i < total; ++i) {
-      if (i >= n || !gone[i]) new_of_old[i] = next_int++;
-    }
-  }
-  std::vector<Vec2> pos(n_new);
-  std::vector<uint32_t> ext(n_new), rep(n_new), dup(n_new);
-  for (uint32_t o = 0; o < total; ++o) {
-    const uint32_t i = new_of_old[o];
-    if (i == kNoVertex) continue;
-    pos[i] = pos_[o];
-    ext[i] = o < n ? new_ext_of_old[ext_of_int_[o]] : n_new - m + (o - n);
-    rep[i] = new_of_old[rep_[o]];
-    dup[i] = dup_next_[o] == kNoVertex ? kNoVertex : new_of_old[dup_next_[o]];
-  }
-  pos_ = std::move(pos);
-  ext_of_int_ = std::move(ext);
-  rep_ = std::move(rep);
-  dup_next_ = std::move(dup);
-  int_of_ext_.assign(n_new, 0);
-  for (uint32_t i = 0; i < n_new; ++i) int_of_ext_[ext_of_int_[i]] = i;
-  if (!leaving.empty()) {
-    mesh_.RenumberVertices(new_of_old, n_new);
-  }
-  mesh_.SortTrianglesByVertex();
+  pos_.resize(n_new);
+  ext_of_int_.resize(n_new);
+  rep_.resize(n_new);
+  dup_next_.resize(n_new);
+  int_of_ext_.resize(n_new);
+  ParallelFor(0, n_new, [&](size_t i) {
+    int_of_ext_[ext_of_int_[i]] = static_cast<uint32_t>(i);
+  });
+  mesh_.ResizeVertices(n_new);
+  // (Triangle slots are not re-sorted here: the periodic renumbering
+  // restores their spatial order.)
   sites_.clear();
   has_duplicates_ = false;
   for (uint32_t i = 0; i < n_new; ++i) {
@@ -1166,7 +1201,7 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
     return CheckPosition(p, "new position of point", ext);
   };
   if (no_moves) {
-    next = pos_;
+    // nothing moves
   } else if (dense) {
     // Parallel, in internal order; the first bad entry (by index) is
     // reported, as a sequential scan would.
@@ -1221,7 +1256,7 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
   }
 
   // Points that leave stay where they are until they leave.
-  if (dense && !leaves.empty()) {
+  if (dense && !no_moves && !leaves.empty()) {
     for (uint32_t ext : batch.remove) {
       const uint32_t in = int_of_ext_[ext];
       next[in] = pos_[in];
@@ -1230,9 +1265,11 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
 
   StepReport report;
   std::vector<uint32_t> moved;
-  Run([&] {
-    moved = FilterIndices(n, [&](size_t i) { return next[i] != pos_[i]; });
-  });
+  if (!no_moves) {
+    Run([&] {
+      moved = FilterIndices(n, [&](size_t i) { return next[i] != pos_[i]; });
+    });
+  }
   report.moved_points = static_cast<uint32_t>(moved.size());
   if (cancel != nullptr) {
     if (absl::Status s = cancel->Check("step"); !s.ok()) return s;
