@@ -53,6 +53,20 @@ if [ "$(cut -d, -f2 <<<"$rows" | sort -u | tr '\n' ' ')" != "3 7 " ] ||
   echo "FAIL: query rows: $rows"; fail=1
 fi
 expect 2 "--k must be >= 1" -- "$cli" $S query --session=sessions/t --kind=knn --k=0
+# Points join and leave (a separate session: the stats below expect step 2).
+expect 0 "sessions/j points=50" -- "$cli" $S create --random=50 --id=j
+printf 'x,y\n0.25,0.25\n0.5,0.75\n' >"$tmp/add.csv"
+expect 0 "2 points joined, 52 points now (ids 50..51)" -- "$cli" $S add --session=sessions/j --csv="$tmp/add.csv"
+expect 0 "3 points left, 49 points now" -- "$cli" $S remove --session=sessions/j --ids=0,50,7
+expect 1 "NOT_FOUND: remove[0] = 49" -- "$cli" $S remove --session=sessions/j --ids=49
+expect 2 "remove: --ids=1,2,3 is required" -- "$cli" $S remove --session=sessions/j
+expect 2 "add: --csv=points.csv" -- "$cli" $S add --session=sessions/j
+expect 2 "this session numbers points itself" -- "$cli" $S add --session=sessions/j --csv="$tmp/add.csv" --ids=4,5
+# The point that joined as id 51 (0.5, 0.75) is now id 48, after 0, 7, 50 left.
+last=$("$cli" $S export --session=sessions/j --format=csv | awk -F, '$1 == "point" && $2 == 48')
+if [ "$last" != "point,48,0.5,0.75" ]; then
+  echo "FAIL: joined point not where expected: '$last'"; fail=1
+fi
 expect 0 "step: 2" -- "$cli" $S stats --session=sessions/t
 expect 0 "created: 20" -- "$cli" $S stats --session=sessions/t
 if "$cli" $S stats --session=sessions/t | grep -q "seconds:"; then
