@@ -8,6 +8,7 @@ PACKAGES=(
   libabsl-dev libtbb-dev libnanoflann-dev
   libgtest-dev libgmock-dev libbenchmark-dev
   libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler
+  grpc-proto
   prometheus-cpp-dev
   python3 python3-grpcio python3-protobuf python3-numpy python3-yaml
   python3-venv python3-pip python3-setuptools python3-wheel python3-build

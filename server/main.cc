@@ -22,6 +22,7 @@
 #include "core/program_flags.h"
 #include "server/auth.h"
 #include "server/metrics.h"
+#include "server/reflection_v1.h"
 #include "server/service.h"
 #include "server/session_registry.h"
 #ifdef KINETRI_SERVER_CUDA
@@ -325,6 +326,11 @@ int main(int argc, char** argv) {
   builder.SetMaxReceiveMessageSize(max_bytes);
   builder.SetMaxSendMessageSize(max_bytes);
   builder.RegisterService(&service);
+  kinetri::server::ReflectionV1Service reflection_v1(
+      {"kinetri.v1.KinetriService", "grpc.health.v1.Health",
+       "grpc.reflection.v1.ServerReflection",
+       "grpc.reflection.v1alpha.ServerReflection"});
+  builder.RegisterService(&reflection_v1);
   std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
   if (!server || port == 0) {
     std::fprintf(stderr,

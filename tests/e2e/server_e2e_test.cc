@@ -15,6 +15,8 @@
 #include "absl/strings/str_cat.h"
 #include "client/cpp/kinetri_client.h"
 #include "core/predicates.h"
+#include "google/protobuf/descriptor.pb.h"
+#include "grpc/reflection/v1/reflection.grpc.pb.h"
 #include "tests/e2e/server_process.h"
 
 namespace kinetri {
@@ -571,6 +573,109 @@ TEST_F(E2eTest, PointsJoinAndLeave) {
               absl::StatusCode::kResourceExhausted);
     EXPECT_EQ(client_->GetSession(s->name())->point_count(), count);
     ASSERT_TRUE(client_->DeleteSession(s->name()).ok());
+  }
+}
+
+// Server reflection v1 (and v1alpha, the same messages) describe the API:
+// services, the file of a symbol with its imports, errors for unknown names.
+TEST_F(E2eTest, ReflectionV1AndV1alpha) {
+  namespace refl = grpc::reflection::v1;
+  auto channel = grpc::CreateChannel(server_->target(),
+                                     grpc::InsecureChannelCredentials());
+  auto stub = refl::ServerReflection::NewStub(channel);
+  grpc::ClientContext ctx;
+  auto stream = stub->ServerReflectionInfo(&ctx);
+  refl::ServerReflectionRequest req;
+  refl::ServerReflectionResponse resp;
+  req.set_list_services("");
+  ASSERT_TRUE(stream->Write(req));
+  ASSERT_TRUE(stream->Read(&resp));
+  std::set<std::string> services;
+  for (const auto& s : resp.list_services_response().service()) {
+    services.insert(s.name());
+  }
+  EXPECT_TRUE(services.count("kinetri.v1.KinetriService"));
+  EXPECT_TRUE(services.count("grpc.reflection.v1.ServerReflection"));
+  req.set_file_containing_symbol("kinetri.v1.KinetriService");
+  ASSERT_TRUE(stream->Write(req));
+  ASSERT_TRUE(stream->Read(&resp));
+  std::set<std::string> files;
+  bool has_steps = false;
+  for (const std::string& bytes :
+       resp.file_descriptor_response().file_descriptor_proto()) {
+    google::protobuf::FileDescriptorProto f;
+    ASSERT_TRUE(f.ParseFromString(bytes));
+    files.insert(f.name());
+    for (const auto& svc : f.service()) {
+      for (const auto& m : svc.method()) {
+        has_steps |=
+            svc.name() == "KinetriService" && m.name() == "StreamSteps";
+      }
+    }
+  }
+  EXPECT_TRUE(has_steps);
+  EXPECT_TRUE(files.count("kinetri/v1/kinetri.proto"));
+  EXPECT_TRUE(files.count("google/protobuf/timestamp.proto"));
+  // A message type resolves to its file (already sent on this stream).
+  req.set_file_containing_symbol("kinetri.v1.StepRequest");
+  ASSERT_TRUE(stream->Write(req));
+  ASSERT_TRUE(stream->Read(&resp));
+  EXPECT_FALSE(resp.has_error_response());
+  EXPECT_EQ(resp.original_request().file_containing_symbol(),
+            "kinetri.v1.StepRequest");
+  req.set_file_containing_symbol("kinetri.v1.NoSuchThing");
+  ASSERT_TRUE(stream->Write(req));
+  ASSERT_TRUE(stream->Read(&resp));
+  EXPECT_EQ(resp.error_response().error_code(), grpc::StatusCode::NOT_FOUND);
+  req.set_file_by_filename("no/such.proto");
+  ASSERT_TRUE(stream->Write(req));
+  ASSERT_TRUE(stream->Read(&resp));
+  EXPECT_EQ(resp.error_response().error_code(), grpc::StatusCode::NOT_FOUND);
+  stream->WritesDone();
+  EXPECT_TRUE(stream->Finish().ok());
+
+  // v1alpha answers the same request (same wire format).
+  grpc::GenericStub generic(channel);
+  grpc::ClientContext actx;
+  grpc::CompletionQueue cq;
+  req.set_list_services("");
+  std::string bytes = req.SerializeAsString();
+  grpc::ByteBuffer out_buf;
+  {
+    grpc::Slice slice(bytes);
+    out_buf = grpc::ByteBuffer(&slice, 1);
+  }
+  auto call = generic.PrepareCall(
+      &actx, "/grpc.reflection.v1alpha.ServerReflection/ServerReflectionInfo",
+      &cq);
+  void* tag = nullptr;
+  bool ok = false;
+  call->StartCall(reinterpret_cast<void*>(1));
+  ASSERT_TRUE(cq.Next(&tag, &ok) && ok);
+  call->WriteLast(out_buf, grpc::WriteOptions(), reinterpret_cast<void*>(2));
+  ASSERT_TRUE(cq.Next(&tag, &ok) && ok);
+  grpc::ByteBuffer in_buf;
+  call->Read(&in_buf, reinterpret_cast<void*>(3));
+  ASSERT_TRUE(cq.Next(&tag, &ok) && ok);
+  std::vector<grpc::Slice> slices;
+  ASSERT_TRUE(in_buf.Dump(&slices).ok());
+  std::string in_bytes;
+  for (const auto& sl : slices) {
+    in_bytes.append(reinterpret_cast<const char*>(sl.begin()), sl.size());
+  }
+  refl::ServerReflectionResponse alpha;
+  ASSERT_TRUE(alpha.ParseFromString(in_bytes));
+  bool alpha_has = false;
+  for (const auto& svc : alpha.list_services_response().service()) {
+    alpha_has |= svc.name() == "kinetri.v1.KinetriService";
+  }
+  EXPECT_TRUE(alpha_has);
+  grpc::Status st;
+  call->Finish(&st, reinterpret_cast<void*>(4));
+  ASSERT_TRUE(cq.Next(&tag, &ok));
+  EXPECT_TRUE(st.ok()) << st.error_message();
+  cq.Shutdown();
+  while (cq.Next(&tag, &ok)) {
   }
 }
 
