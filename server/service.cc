@@ -663,10 +663,111 @@ grpc::Status KinetriServiceImpl::Query(
     grpc::ServerContext* ctx, const v1::QueryRequest* req,
     grpc::ServerWriter<v1::QueryResponse>* writer) {
   RpcScope rpc(metrics_, "Query", "server_stream");
+  return rpc.Done(RunQuery(ctx, *req, [writer](const v1::QueryResponse& r) {
+    return writer->Write(r);
+  }));
+}
+
+grpc::Status KinetriServiceImpl::StreamQuery(
+    grpc::ServerContext* ctx,
+    grpc::ServerReaderWriter<v1::QueryResponse, v1::QueryRequest>* stream) {
+  RpcScope rpc(metrics_, "StreamQuery", "bidi_stream");
   auto tenant = Caller(*ctx);
   if (!tenant.ok()) return rpc.Done(ToGrpc(tenant.status()));
+  // The first message is the query; the others add targets of the same
+  // kind. Targets are held until the client half-closes: bounded by
+  // --max_points and reserved from the memory budget as they arrive.
+  v1::QueryRequest req, more;
+  IdleWatchdog::Registration idle(watchdog_, ctx);
+  if (!stream->Read(&req)) {
+    return rpc.Done(grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                                 "StreamQuery: no query was sent"));
+  }
+  if (!req.has_positions() && !req.has_point_ids()) {
+    return rpc.Done(grpc::Status(
+        grpc::StatusCode::INVALID_ARGUMENT,
+        "targets: StreamQuery streams positions or point_ids (all_points "
+        "needs no stream: use Query)"));
+  }
+  const uint64_t max_targets = registry_->limits().max_points_per_session;
+  std::vector<MemoryBudget::Reservation> held;
+  auto targets = [&] {
+    return req.has_positions() ? uint64_t(req.positions().xy_size() / 2)
+                               : uint64_t(req.point_ids().ids_size() +
+                                          req.point_ids().client_ids_size());
+  };
+  uint64_t reserved = 0;
+  while (true) {
+    const uint64_t count = targets();
+    if (count > max_targets) {
+      return rpc.Done(grpc::Status(
+          grpc::StatusCode::RESOURCE_EXHAUSTED,
+          absl::StrCat("targets: more than ", max_targets,
+                       " in one query (the server's --max_points)")));
+    }
+    // 16 bytes per target held, 2x for the answer's bookkeeping.
+    const uint64_t need = 32 * count;
+    if (need > reserved) {
+      const uint64_t step = std::max<uint64_t>(need - reserved, 8 << 20);
+      auto r = budget_->Reserve(step, "StreamQuery targets");
+      if (!r.ok()) return rpc.Done(ToGrpc(r.status()));
+      reserved += step;
+      held.push_back(*std::move(r));
+    }
+    if (!stream->Read(&more)) break;
+    idle.Touch();
+    if (ctx->IsCancelled()) {
+      return rpc.Done(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled"));
+    }
+    if (!more.session().empty() && more.session() != req.session()) {
+      return rpc.Done(grpc::Status(
+          grpc::StatusCode::INVALID_ARGUMENT,
+          "session: every message of a StreamQuery names the same session"));
+    }
+    if (more.has_all_points() ||
+        (req.has_positions() && more.has_point_ids()) ||
+        (req.has_point_ids() && more.has_positions())) {
+      return rpc.Done(grpc::Status(
+          grpc::StatusCode::INVALID_ARGUMENT,
+          "targets: every message of a StreamQuery carries the same kind of "
+          "targets as the first"));
+    }
+    if (more.has_positions()) {
+      if (more.positions().xy_size() % 2 != 0) {
+        return rpc.Done(grpc::Status(
+            grpc::StatusCode::INVALID_ARGUMENT,
+            absl::StrCat("positions.xy: ", more.positions().xy_size(),
+                         " coordinates is odd (expected x, y pairs)")));
+      }
+      req.mutable_positions()->mutable_xy()->Add(more.positions().xy().begin(),
+                                                 more.positions().xy().end());
+    } else if (more.has_point_ids()) {
+      req.mutable_point_ids()->mutable_ids()->Add(
+          more.point_ids().ids().begin(), more.point_ids().ids().end());
+      req.mutable_point_ids()->mutable_client_ids()->Add(
+          more.point_ids().client_ids().begin(),
+          more.point_ids().client_ids().end());
+    }
+  }
+  if (idle.timed_out()) {
+    return rpc.Done(
+        grpc::Status(grpc::StatusCode::CANCELLED,
+                     "the client sent nothing for longer than the server's "
+                     "--stream_idle_timeout_seconds"));
+  }
+  return rpc.Done(RunQuery(ctx, req, [stream](const v1::QueryResponse& r) {
+    return stream->Write(r);
+  }));
+}
+
+grpc::Status KinetriServiceImpl::RunQuery(
+    grpc::ServerContext* ctx, const v1::QueryRequest& request,
+    const std::function<bool(const v1::QueryResponse&)>& write) {
+  const v1::QueryRequest* req = &request;
+  auto tenant = Caller(*ctx);
+  if (!tenant.ok()) return (ToGrpc(tenant.status()));
   auto s = Lookup(req->session(), tenant->name);
-  if (!s.ok()) return rpc.Done(ToGrpc(s.status()));
+  if (!s.ok()) return (ToGrpc(s.status()));
   Session& session = **s;
   std::string op;
   switch (req->kind()) {
@@ -676,26 +777,24 @@ grpc::Status KinetriServiceImpl::Query(
     case v1::QUERY_KIND_K_NEAREST:
       op = "k_nearest";
       if (req->k() <= 0) {
-        return rpc.Done(
-            grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                         absl::StrCat("k: ", req->k(), " must be > 0")));
+        return (grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                             absl::StrCat("k: ", req->k(), " must be > 0")));
       }
       break;
     case v1::QUERY_KIND_RADIUS:
       op = "radius";
       break;
     default:
-      return rpc.Done(
-          grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                       "kind: must be NEAREST, K_NEAREST or RADIUS"));
+      return (grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                           "kind: must be NEAREST, K_NEAREST or RADIUS"));
   }
   std::vector<core::Vec2> positions;
   if (req->has_positions()) {
     absl::Status st =
         AppendPoints(req->positions().xy(), "positions.xy", &positions);
-    if (!st.ok()) return rpc.Done(ToGrpc(st));
+    if (!st.ok()) return (ToGrpc(st));
   } else if (!req->has_point_ids() && !req->has_all_points()) {
-    return rpc.Done(
+    return (
         grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                      "targets: set one of point_ids, positions, all_points"));
   }
@@ -716,7 +815,7 @@ grpc::Status KinetriServiceImpl::Query(
     for (uint32_t i = 0; i < t.size(); ++i) ids[i] = i;
   } else if (req->has_point_ids()) {
     auto resolved = ResolvePointIds(req->point_ids(), snap.ids.get());
-    if (!resolved.ok()) return rpc.Done(ToGrpc(resolved.status()));
+    if (!resolved.ok()) return (ToGrpc(resolved.status()));
     ids = std::move(*resolved);
   }
   const bool by_id = !req->has_positions();
@@ -732,14 +831,14 @@ grpc::Status KinetriServiceImpl::Query(
       if (st.code() == absl::StatusCode::kNotFound && req->has_point_ids()) {
         st = absl::NotFoundError(absl::StrCat("point_ids.", st.message()));
       }
-      return rpc.Done(ToGrpc(st));
+      return (ToGrpc(st));
     }
   }
   const bool all_nearest = !radius && by_id && req->has_all_points() &&
                            k == 1 && req->exclude_self();
   if (!radius && !all_nearest &&
       static_cast<uint64_t>(k) * total_rows > limits.max_total_results) {
-    return rpc.Done(
+    return (
         grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
                      absl::StrCat("k: ", k, " results for each of ", total_rows,
                                   " queries exceed the limit of ",
@@ -797,14 +896,14 @@ grpc::Status KinetriServiceImpl::Query(
         std::chrono::duration<double>(Clock::now() - start).count();
     if (!result.ok()) {
       if (result.status().code() == absl::StatusCode::kResourceExhausted) {
-        return rpc.Done(grpc::Status(
+        return (grpc::Status(
             grpc::StatusCode::RESOURCE_EXHAUSTED,
             absl::StrCat("query stopped: its rows hold more than ",
                          session.max_query_results(),
                          " results in all (the limit); ask fewer targets, a "
                          "smaller k or radius, or set max_results_per_row")));
       }
-      return rpc.Done(ToGrpc(result.status()));
+      return (ToGrpc(result.status()));
     }
     produced += result->ids.size();
     bool cancelled = false;
@@ -816,17 +915,17 @@ grpc::Status KinetriServiceImpl::Query(
                        cancelled = true;
                        return false;
                      }
-                     return writer->Write(chunk);
+                     return write(chunk);
                    });
     if (!sent) {
-      return rpc.Done(
+      return (
           grpc::Status(grpc::StatusCode::CANCELLED,
                        cancelled ? "cancelled" : "the client stopped reading"));
     }
     if (total_rows == 0) break;
   }
   metrics_->ObserveQuery(op, session.backend(), compute_seconds);
-  return rpc.Done(grpc::Status::OK);
+  return grpc::Status::OK;
 }
 
 grpc::Status KinetriServiceImpl::ExportTriangulation(

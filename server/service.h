@@ -3,6 +3,7 @@
 #define KINETRI_SERVER_SERVICE_H_
 
 #include <atomic>
+#include <functional>
 #include <memory>
 #include <string>
 
@@ -73,12 +74,22 @@ class KinetriServiceImpl final : public v1::KinetriService::Service {
       override;
   grpc::Status Query(grpc::ServerContext* ctx, const v1::QueryRequest* request,
                      grpc::ServerWriter<v1::QueryResponse>* writer) override;
+  grpc::Status StreamQuery(
+      grpc::ServerContext* ctx,
+      grpc::ServerReaderWriter<v1::QueryResponse, v1::QueryRequest>* stream)
+      override;
   grpc::Status ExportTriangulation(
       grpc::ServerContext* ctx, const v1::ExportTriangulationRequest* request,
       grpc::ServerWriter<v1::ExportTriangulationResponse>* writer) override;
 
  private:
   void UpdateGauges();
+  // Query's work for a whole request (its targets assembled): checks, then
+  // rows computed a block at a time and handed to `write` in chunks (false:
+  // the client went away).
+  grpc::Status RunQuery(
+      grpc::ServerContext* ctx, const v1::QueryRequest& request,
+      const std::function<bool(const v1::QueryResponse&)>& write);
   // registry_->Get, or DATA_LOSS for a session whose files are corrupt.
   absl::StatusOr<std::shared_ptr<Session>> Lookup(
       const std::string& name, const std::string& tenant) const;

@@ -215,11 +215,11 @@ absl::StatusOr<std::unique_ptr<StepStream>> Client::OpenSteps(
                                       2 * chunk_points_, token_);
 }
 
-absl::StatusOr<Neighbors> Client::Query(const v1::QueryRequest& request) {
-  if (!init_status_.ok()) return init_status_;
-  grpc::ClientContext ctx;
-  Prepare(&ctx, request.session());
-  auto reader = stub_->Query(&ctx, request);
+namespace {
+
+// Reads a query's answer (Query or StreamQuery) into CSR rows.
+template <typename Reader>
+absl::StatusOr<Neighbors> ReadAnswer(Reader* reader, grpc::ClientContext* ctx) {
   Neighbors out;
   out.offsets.push_back(0);
   v1::QueryResponse chunk;
@@ -228,7 +228,7 @@ absl::StatusOr<Neighbors> Client::Query(const v1::QueryRequest& request) {
   while (reader->Read(&chunk)) {
     // Every chunk of one answer comes from the same step, rows in order.
     if (!first && chunk.step() != out.step) {
-      ctx.TryCancel();
+      ctx->TryCancel();
       reader->Finish();
       return absl::InternalError(absl::StrCat("query answer mixes steps ",
                                               out.step, " and ", chunk.step()));
@@ -237,7 +237,7 @@ absl::StatusOr<Neighbors> Client::Query(const v1::QueryRequest& request) {
     // offset is replaced, not followed.
     if (continues) out.offsets.pop_back();
     if (chunk.first_row() != out.offsets.size() - 1) {
-      ctx.TryCancel();
+      ctx->TryCancel();
       reader->Finish();
       return absl::InternalError(absl::StrCat("query chunk starts at row ",
                                               chunk.first_row(), ", expected ",
@@ -263,6 +263,62 @@ absl::StatusOr<Neighbors> Client::Query(const v1::QueryRequest& request) {
   const grpc::Status st = reader->Finish();
   if (!st.ok()) return FromGrpc(st);
   return out;
+}
+
+}  // namespace
+
+absl::StatusOr<Neighbors> Client::Query(const v1::QueryRequest& request) {
+  if (!init_status_.ok()) return init_status_;
+  grpc::ClientContext ctx;
+  Prepare(&ctx, request.session());
+  // Values (coordinates or ids) per message: chunk_points positions.
+  const size_t per = 2 * std::max<size_t>(chunk_points_, 1);
+  const bool positions = request.has_positions();
+  const size_t targets = positions ? request.positions().xy_size()
+                         : request.has_point_ids()
+                             ? request.point_ids().ids_size() +
+                                   request.point_ids().client_ids_size()
+                             : 0;
+  if (targets <= per) {
+    auto reader = stub_->Query(&ctx, request);
+    return ReadAnswer(reader.get(), &ctx);
+  }
+  // More targets than one message should carry: StreamQuery, the query
+  // and its first targets first, the rest in messages of `per` values.
+  auto stream = stub_->StreamQuery(&ctx);
+  for (size_t i = 0; i < targets; i += per) {
+    const size_t end = std::min(targets, i + per);
+    v1::QueryRequest part;
+    if (i == 0) {
+      part = request;
+      if (positions) {
+        part.mutable_positions()->mutable_xy()->Truncate(static_cast<int>(end));
+      } else {
+        auto* ids = part.mutable_point_ids();
+        ids->clear_ids();
+        ids->clear_client_ids();
+      }
+    }
+    if (positions) {
+      if (i > 0) {
+        part.mutable_positions()->mutable_xy()->Add(
+            request.positions().xy().begin() + i,
+            request.positions().xy().begin() + end);
+      }
+    } else {
+      const auto& all = request.point_ids();
+      auto* ids = part.mutable_point_ids();
+      if (all.ids_size() > 0) {
+        ids->mutable_ids()->Add(all.ids().begin() + i, all.ids().begin() + end);
+      } else {
+        ids->mutable_client_ids()->Add(all.client_ids().begin() + i,
+                                       all.client_ids().begin() + end);
+      }
+    }
+    if (!stream->Write(part)) break;
+  }
+  stream->WritesDone();
+  return ReadAnswer(stream.get(), &ctx);
 }
 
 namespace {

@@ -162,7 +162,8 @@ class Client {
       const std::string& name, uint64_t first_step = 0);
 
   // Runs a query (its targets and options set by the caller) and collects
-  // every chunk.
+  // every chunk. Targets beyond one message (chunk_points positions or
+  // 2 x chunk_points ids) go by StreamQuery, cut into messages.
   absl::StatusOr<Neighbors> Query(const v1::QueryRequest& request);
   absl::StatusOr<Neighbors> NearestOfAll(const std::string& name);
   absl::StatusOr<Neighbors> KNearest(const std::string& name,

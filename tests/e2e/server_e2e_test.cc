@@ -679,6 +679,69 @@ TEST_F(E2eTest, ReflectionV1AndV1alpha) {
   }
 }
 
+// Query targets beyond one message stream (StreamQuery): the client (700
+// points per message) cuts 5000 positions and 3000 ids into messages; the
+// answers equal brute force. Wrong streams are refused.
+TEST_F(E2eTest, QueryTargetsStream) {
+  const std::vector<double> xy = Uniform(4000, 71);
+  auto s = client_->CreateSession(xy, v1::SessionOptions());
+  ASSERT_TRUE(s.ok()) << s.status();
+  const std::vector<double> qs = Uniform(5000, 72);
+  auto r = client_->KNearest(s->name(), qs, 3);
+  ASSERT_TRUE(r.ok()) << r.status();
+  ASSERT_EQ(r->offsets.size(), 5001u);
+  for (size_t i = 0; i < 5000; i += 7) {
+    auto want = Rank(xy, At(qs, i), -1);
+    want.resize(3);
+    ASSERT_EQ(Row(*r, i), want) << "query " << i;
+  }
+  std::vector<uint32_t> ids;
+  for (uint32_t i = 0; i < 3000; ++i) ids.push_back((i * 7) % 4000);
+  auto rp = client_->KNearestOfPoints(s->name(), ids, 2, true);
+  ASSERT_TRUE(rp.ok()) << rp.status();
+  ASSERT_EQ(rp->offsets.size(), 3001u);
+  for (size_t i = 0; i < ids.size(); i += 11) {
+    auto want = Rank(xy, At(xy, ids[i]), ids[i]);
+    want.resize(2);
+    ASSERT_EQ(Row(*rp, i), want) << "point " << ids[i];
+  }
+  // Mixed kinds of targets, and all_points, are refused.
+  auto call = [&](const std::vector<v1::QueryRequest>& msgs) {
+    grpc::ClientContext ctx;
+    client_->Prepare(&ctx, s->name());
+    auto st = client_->stub()->StreamQuery(&ctx);
+    for (const auto& m : msgs) st->Write(m);
+    st->WritesDone();
+    v1::QueryResponse resp;
+    while (st->Read(&resp)) {
+    }
+    return st->Finish();
+  };
+  v1::QueryRequest first;
+  first.set_session(s->name());
+  first.set_kind(v1::QUERY_KIND_NEAREST);
+  first.mutable_positions()->add_xy(0.5);
+  first.mutable_positions()->add_xy(0.5);
+  v1::QueryRequest ids_part;
+  ids_part.mutable_point_ids()->add_ids(3);
+  EXPECT_EQ(call({first, ids_part}).error_code(),
+            grpc::StatusCode::INVALID_ARGUMENT);
+  v1::QueryRequest all = first;
+  all.mutable_all_points();
+  EXPECT_EQ(call({all}).error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_EQ(call({}).error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  // More targets than the server's --max_points (200000).
+  v1::QueryRequest big;
+  big.mutable_positions()->mutable_xy()->Resize(2 * 120000, 0.25);
+  EXPECT_EQ(call({first, big, big}).error_code(),
+            grpc::StatusCode::RESOURCE_EXHAUSTED);
+  v1::QueryRequest odd;
+  odd.mutable_positions()->add_xy(0.1);
+  EXPECT_EQ(call({first, odd}).error_code(),
+            grpc::StatusCode::INVALID_ARGUMENT);
+  ASSERT_TRUE(client_->DeleteSession(s->name()).ok());
+}
+
 TEST_F(E2eTest, MetricsMove) {
   const std::string before =
       testing::HttpGet(server_->metrics_port(), "/metrics");
