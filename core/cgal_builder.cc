@@ -6,6 +6,7 @@
 #include <CGAL/Triangulation_face_base_with_info_2.h>
 #include <CGAL/Triangulation_vertex_base_with_info_2.h>
 
+#include <algorithm>
 #include <utility>
 #include <vector>
 
@@ -20,14 +21,32 @@ using CgalPoint = Kernel::Point_2;
 }  // namespace
 
 Mesh BuildDelaunayWithCgal(absl::Span<const Vec2> positions,
-                           absl::Span<const uint32_t> sites) {
+                           absl::Span<const uint32_t> sites,
+                           const CancelToken* cancel, bool* cancelled) {
+  auto stop = [&] {
+    if (cancel == nullptr || !cancel->Cancelled()) return false;
+    if (cancelled != nullptr) *cancelled = true;
+    return true;
+  };
   std::vector<std::pair<CgalPoint, uint32_t>> input;
   input.reserve(sites.size());
   for (uint32_t s : sites) {
     input.emplace_back(CgalPoint(positions[s].x, positions[s].y), s);
   }
   Delaunay dt;
-  dt.insert(input.begin(), input.end());
+  if (cancel == nullptr) {
+    dt.insert(input.begin(), input.end());
+  } else {
+    // In batches (CGAL sorts each spatially; the sites come in spatial
+    // order already), with the token polled in between.
+    constexpr size_t kBatch = size_t{1} << 15;
+    for (size_t i = 0; i < input.size(); i += kBatch) {
+      if (stop()) return Mesh();
+      const size_t end = std::min(input.size(), i + kBatch);
+      dt.insert(input.begin() + i, input.begin() + end);
+    }
+  }
+  if (stop()) return Mesh();
   if (dt.dimension() < 2) return Mesh();
 
   // Number every face (finite and infinite) and emit three half-edges each.
@@ -39,6 +58,7 @@ Mesh BuildDelaunayWithCgal(absl::Span<const Vec2> positions,
   const size_t num_he = faces.size() * 3;
   std::vector<uint32_t> origin(num_he), twin(num_he);
   for (size_t t = 0; t < faces.size(); ++t) {
+    if (t % (size_t{1} << 20) == 0 && stop()) return Mesh();
     const auto f = faces[t];
     for (int i = 0; i < 3; ++i) {
       const auto v = f->vertex(i);

@@ -5,6 +5,7 @@
 #include <cstdint>
 
 #include "absl/types/span.h"
+#include "core/cancel.h"
 #include "core/mesh.h"
 #include "core/vec2.h"
 
@@ -14,8 +15,13 @@ namespace kinetri::core {
 // must be pairwise distinct). Vertex ids in the returned mesh are the site
 // ids; the mesh has positions.size() vertex slots. Returns an empty mesh when
 // the sites span fewer than two dimensions (fewer than 3, or all collinear).
+// `cancel` (optional) is polled between batches of 32K insertions (sites in
+// spatial order: a few tens of milliseconds each) and of 1M converted
+// faces; when it fires the result is an empty mesh and *cancelled is set.
 Mesh BuildDelaunayWithCgal(absl::Span<const Vec2> positions,
-                           absl::Span<const uint32_t> sites);
+                           absl::Span<const uint32_t> sites,
+                           const CancelToken* cancel = nullptr,
+                           bool* cancelled = nullptr);
 
 }  // namespace kinetri::core
 

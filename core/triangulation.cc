@@ -141,7 +141,8 @@ void Triangulation::RunImpl(const std::function<void()>& fn) const {
 }
 
 absl::StatusOr<Triangulation> Triangulation::Create(
-    absl::Span<const Vec2> points, const TriangulationOptions& options) {
+    absl::Span<const Vec2> points, const TriangulationOptions& options,
+    const CancelToken* cancel) {
   if (points.size() >= (size_t{1} << 29)) {
     return absl::ResourceExhaustedError(absl::StrCat(
         "points: ", points.size(), " points exceed the limit of 2^29"));
@@ -176,6 +177,9 @@ absl::StatusOr<Triangulation> Triangulation::Create(
   for (size_t i = 0; i < points.size(); ++i) {
     absl::Status s = CheckPosition(points[i], "points", i);
     if (!s.ok()) return s;
+    if (cancel != nullptr && i % (size_t{1} << 20) == 0) {
+      if (absl::Status c = cancel->Check("creation"); !c.ok()) return c;
+    }
   }
   Triangulation t;
   t.options_ = options;
@@ -188,7 +192,9 @@ absl::StatusOr<Triangulation> Triangulation::Create(
     t.device_ = *std::move(d);
   }
   std::vector<Vec2> copy(points.begin(), points.end());
-  t.Run([&] { t.Rebuild(copy); });
+  bool built = true;
+  t.Run([&] { built = t.Rebuild(copy, cancel); });
+  if (!built) return cancel->Check("creation");
   return t;
 }
 
@@ -272,7 +278,8 @@ TriangulationView Triangulation::query_view() const {
   return v;
 }
 
-void Triangulation::Rebuild(const std::vector<Vec2>& positions_by_ext) {
+bool Triangulation::Rebuild(const std::vector<Vec2>& positions_by_ext,
+                            const CancelToken* cancel) {
   const uint32_t n = static_cast<uint32_t>(positions_by_ext.size());
   ext_of_int_ = HilbertOrder(positions_by_ext);
   int_of_ext_.assign(n, 0);
@@ -305,7 +312,9 @@ void Triangulation::Rebuild(const std::vector<Vec2>& positions_by_ext) {
   for (uint32_t i = 0; i < n; ++i) {
     if (rep_[i] == i) sites_.push_back(i);
   }
-  mesh_ = BuildDelaunayWithCgal(pos_, sites_);
+  bool cancelled = false;
+  mesh_ = BuildDelaunayWithCgal(pos_, sites_, cancel, &cancelled);
+  if (cancelled) return false;
   MeshChangedOnHost();
   if (!mesh_.empty()) mesh_.SortTrianglesByVertex();
   removal_touched_.clear();
@@ -320,6 +329,7 @@ void Triangulation::Rebuild(const std::vector<Vec2>& positions_by_ext) {
     for (uint32_t r = 0; r < line_.size(); ++r) line_rank_[line_[r]] = r;
   }
   baseline_span_ = MeanEdgeSpan();
+  return true;
 }
 
 double Triangulation::MeanEdgeSpan() const {

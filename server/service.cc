@@ -427,7 +427,11 @@ grpc::Status KinetriServiceImpl::CreateSession(
     opt.executor = core::Executor::kDevice;
     opt.device_backend = limits.device;
   }
-  auto tri = core::Triangulation::Create(points, opt);
+  // A client that cancels (or whose deadline passes) while the
+  // triangulation is built stops the build within tens of milliseconds.
+  const core::CancelToken cancel([ctx] { return ctx->IsCancelled(); },
+                                 ToSteadyDeadline(ctx->deadline()));
+  auto tri = core::Triangulation::Create(points, opt, &cancel);
   if (!tri.ok()) return rpc.Done(ToGrpc(tri.status()));
   const uint64_t max_results =
       header.options().max_query_results()

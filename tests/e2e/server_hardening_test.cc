@@ -94,6 +94,57 @@ TEST_F(HardeningTest, DeadlineStopsAQuery) {
   EXPECT_TRUE(client_->NearestOfAll(s->name()).ok());
 }
 
+// A creation whose deadline passes while the triangulation is built stops
+// the build (not only the upload): DEADLINE_EXCEEDED, and the server's CPU
+// falls idle right after.
+TEST(HardeningCreation, DeadlineStopsTheBuild) {
+  testing::ServerProcess server(
+      KINETRI_SERVER_BINARY,
+      std::vector<std::string>{"--max_points=3000000", "--threads=2"});
+  ASSERT_TRUE(server.ok());
+  Client client(server.target());
+  const size_t n = 2500000;  // about 3 s of CGAL build here
+  const std::vector<double> xy = UniformXY(n, 9);
+  grpc::ClientContext ctx;
+  client.Prepare(&ctx);
+  ctx.set_deadline(std::chrono::system_clock::now() +
+                   std::chrono::milliseconds(1500));
+  v1::Session out;
+  const auto t0 = Clock::now();
+  auto writer = client.stub()->CreateSession(&ctx, &out);
+  v1::CreateSessionRequest head;
+  head.mutable_header()->set_point_count(n);
+  head.mutable_header()->set_session_id("slow");
+  writer->Write(head);
+  for (size_t i = 0; i < xy.size(); i += 262144) {
+    v1::CreateSessionRequest part;
+    const size_t end = std::min(xy.size(), i + 262144);
+    part.mutable_points()->mutable_xy()->Add(xy.begin() + i, xy.begin() + end);
+    if (!writer->Write(part)) break;
+  }
+  writer->WritesDone();
+  const double uploaded_ms = MsSince(t0);
+  const grpc::Status st = writer->Finish();
+  EXPECT_EQ(st.error_code(), grpc::StatusCode::DEADLINE_EXCEEDED)
+      << st.error_message();
+  std::this_thread::sleep_for(std::chrono::milliseconds(150));
+  const double cpu0 = server.CpuSeconds();
+  std::this_thread::sleep_for(std::chrono::milliseconds(500));
+  const double cpu1 = server.CpuSeconds();
+  std::printf(
+      "creation of %zu points, deadline 1500 ms: uploaded after %.0f ms, "
+      "ended after %.0f ms; server CPU in the next 500 ms: %.0f ms\n",
+      n, uploaded_ms, MsSince(t0), (cpu1 - cpu0) * 1e3);
+  EXPECT_LT(uploaded_ms, 1400) << "the upload itself ran into the deadline";
+  EXPECT_LT(cpu1 - cpu0, 0.1);
+  // Nothing was created; the server goes on.
+  EXPECT_EQ(client.GetSession("sessions/slow").status().code(),
+            absl::StatusCode::kNotFound);
+  EXPECT_TRUE(
+      client.CreateSession(UniformXY(100, 3), v1::SessionOptions(), "slow")
+          .ok());
+}
+
 // Defect 2: the total-results limit was checked after the work (a radius
 // query over all points grew the server to GBs first). Refused now while
 // the rows are built, in about the limit's time and memory.
