@@ -17,6 +17,20 @@ Session::ReturnMemoryOnDestroy::~ReturnMemoryOnDestroy() {
 #endif
 }
 
+std::shared_ptr<core::Triangulation> Session::Share(
+    core::Triangulation tri) const {
+  return std::shared_ptr<core::Triangulation>(
+      new core::Triangulation(std::move(tri)),
+      [retired = retired_](core::Triangulation* t) {
+        delete t;
+#if defined(__GLIBC__)
+        if (retired->load()) malloc_trim(0);
+#endif
+      });
+}
+
+Session::~Session() { retired_->store(true); }
+
 Session::Session(std::string id, core::Triangulation tri, std::string backend,
                  uint64_t max_query_results, uint32_t threads,
                  std::shared_ptr<const PointIdMap> client_ids,
@@ -30,7 +44,7 @@ Session::Session(std::string id, core::Triangulation tri, std::string backend,
       client_policy_(client_ids != nullptr),
       memory_(std::move(memory)),
       budget_(budget),
-      current_(std::make_shared<core::Triangulation>(std::move(tri))),
+      current_(Share(std::move(tri))),
       update_time_(create_time_) {
   ids_ = std::move(client_ids);
 }
@@ -168,7 +182,7 @@ absl::StatusOr<core::StepReport> Session::ApplyStep(
   if (!target) {
     // Readers hold the current step: move a copy. Only this writer ever
     // replaces current_, so `source` stays the current step meanwhile.
-    target = std::make_shared<core::Triangulation>(source->Clone());
+    target = Share(source->Clone());
     source.reset();
   }
   // Durable sessions: the step is journaled before it applies (a step the

@@ -141,6 +141,7 @@ class Session {
                                              const std::string& request_id = "",
                                              bool* replayed = nullptr);
   static constexpr size_t kRememberedSteps = 64;
+  ~Session();
 
  private:
   // Declared first, destroyed last: once the triangulation's memory is
@@ -150,6 +151,12 @@ class Session {
   struct ReturnMemoryOnDestroy {
     ~ReturnMemoryOnDestroy();
   } return_memory_;
+  // Set when the session is destroyed: the last holder of one of its
+  // triangulations (a reader may outlive the session) then gives the freed
+  // pages back too.
+  std::shared_ptr<std::atomic<bool>> retired_ =
+      std::make_shared<std::atomic<bool>>(false);
+  std::shared_ptr<core::Triangulation> Share(core::Triangulation tri) const;
   const std::string id_;
   const std::string backend_;
   std::string tenant_;
