@@ -128,7 +128,8 @@ struct StepReport {
   FlipCounts flips;
   std::string fallback_reason;  // why the step was rebuilt, if it was
   bool renumbered = false;
-  uint32_t num_sites = 0;  // distinct positions after the step
+  uint32_t num_sites = 0;   // distinct positions after the step
+  uint32_t num_points = 0;  // points after the step
   double seconds = 0.0;
   // Where the time went (wall clock): fixing attempts, legalizing, removing
   // and inserting vertices again.
@@ -265,6 +266,9 @@ class Triangulation {
   // parallel, split one point per triangle, fix and legalize together.
   bool InsertBatch(std::vector<uint32_t> pending,
                    const std::vector<uint32_t>& hints, StepReport* report);
+  // Joins and leaves of at most this many points are always made locally
+  // (past it, only while they are at most 1/8 of the points).
+  static constexpr uint64_t kLocalChangesMin = 4096;
   // Removes the points `leaving` (external ids) and inserts `joining` into
   // the mesh locally (planar mode), then renumbers the points (see
   // DisplacementBatch). False (with reason) when the mesh cannot be

@@ -191,6 +191,7 @@ v1::StepStats ToProto(const core::StepReport& r) {
   s.set_fallback_reason(r.fallback_reason);
   s.set_update_seconds(r.seconds);
   s.set_removed_points(r.removed_points);
+  s.set_point_count(r.num_points);
   s.set_added_points(r.added_points);
   return s;
 }

@@ -638,9 +638,8 @@ grpc::Status KinetriServiceImpl::StreamSteps(
     if (!replayed) metrics_->ObserveStep(session->backend(), *report);
     resp.set_step(step);
     *resp.mutable_stats() = ToProto(*report);
-    resp.mutable_stats()->set_point_count(session->point_count());
     if (!session->has_client_ids() && report->added_points > 0) {
-      resp.mutable_stats()->set_first_added_id(session->point_count() -
+      resp.mutable_stats()->set_first_added_id(report->num_points -
                                                report->added_points);
     }
     if (!stream->Write(resp)) break;  // client went away; step is applied

@@ -108,6 +108,13 @@ absl::StatusOr<core::StepReport> Session::ApplyStep(
       }
       batch.remove[i] = *in;
     }
+    for (size_t i = 0; i < batch.ids.size(); ++i) {
+      if (removed_at.contains(batch.ids[i])) {
+        return absl::InvalidArgumentError(absl::StrCat(
+            "client_ids[", i, "] = ", client_ids->moved[i],
+            " leaves with this step (it is in remove_client_ids)"));
+      }
+    }
     added_ids = client_ids->added;
   }
   if (ids != nullptr && (!batch.remove.empty() || !added_ids.empty())) {

@@ -172,16 +172,30 @@ TEST(JoinLeave, LargeBatchesStayLocal) {
   ASSERT_TRUE(t.ok());
   std::mt19937_64 rng(7);
   DisplacementBatch b;
-  for (uint32_t i = 0; i < 20000; i += 4) b.remove.push_back(i);
+  for (uint32_t i = 0; i < 20000; i += 10) b.remove.push_back(i);
   std::uniform_real_distribution<double> u(0, 1);
-  for (int k = 0; k < 5000; ++k) b.add.push_back({u(rng), u(rng)});
-  const std::vector<Vec2> expected = ModelAfter(model, b);
+  for (int k = 0; k < 2000; ++k) b.add.push_back({u(rng), u(rng)});
+  std::vector<Vec2> expected = ModelAfter(model, b);
   auto r = t->ApplyDisplacements(b);
   ASSERT_TRUE(r.ok()) << r.status();
   EXPECT_EQ(r->path, UpdatePath::kLocal) << r->fallback_reason;
   EXPECT_EQ(r->moved_points, 0u);
+  EXPECT_EQ(r->num_points, expected.size());
   ExpectExact(*t, expected, "large batch");
   ExpectQueriesMatchBruteForce(*t, expected, rng, "large batch");
+  // Past 1/8 of the points (and 4096), rebuilding is cheaper: same result.
+  b = {};
+  for (uint32_t i = 0; i < 20000; i += 5) b.remove.push_back(i);
+  for (int k = 0; k < 4000; ++k) b.add.push_back({u(rng), u(rng)});
+  expected = ModelAfter(expected, b);
+  r = t->ApplyDisplacements(b);
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_EQ(r->path, UpdatePath::kRebuilt);
+  EXPECT_NE(r->fallback_reason.find("rebuilding is cheaper"), std::string::npos)
+      << r->fallback_reason;
+  EXPECT_EQ(r->removed_points, 4000u);
+  EXPECT_EQ(r->added_points, 4000u);
+  ExpectExact(*t, expected, "rebuilt batch");
 }
 
 TEST(JoinLeave, CoincidentSitesHandOverTheirVertex) {
