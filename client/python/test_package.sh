@@ -74,6 +74,10 @@ try:
                 assert (await steps.move_by(np.zeros((400, 2)))).step == 2
             knn = await a.knn(s.name, 3, ids=[0, 1])
             assert len(knn) == 2 and len(knn.row(0)) == 3
+            async with await a.open_steps(s.name) as steps:  # join, leave
+                ack = await steps.change(add=[[2.0, 2.0]], remove=[0])
+                assert (ack.step, ack.stats.point_count,
+                        ack.stats.first_added_id) == (3, 400, 399), ack
             await a.delete_session(s.name)
             try:
                 await a.get_session(s.name)

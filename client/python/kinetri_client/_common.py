@@ -88,12 +88,37 @@ def point_ids(ids, client: bool, field: str = "ids") -> np.ndarray:
     return a.astype(np.uint32)
 
 
-def flat_xy(points) -> np.ndarray:
+def flat_xy(points, field: str = "points") -> np.ndarray:
     """(n, 2) positions or deltas as one float64 array x0, y0, x1, ..."""
     a = np.ascontiguousarray(points, dtype=np.float64)
     if a.ndim != 2 or a.shape[1] != 2:
-        raise ValueError(f"points must have shape (n, 2), got {a.shape}")
+        raise ValueError(f"{field} must have shape (n, 2), got {a.shape}")
     return a.reshape(-1)
+
+
+def optional_xy(points, field: str) -> np.ndarray:
+    """flat_xy, with None or an empty array-like (such as []) meaning no
+    points."""
+    if points is None:
+        return np.zeros(0, np.float64)
+    a = np.asarray(points, dtype=np.float64)
+    return np.zeros(0, np.float64) if a.size == 0 else flat_xy(a, field)
+
+
+def new_point_ids(ids, field: str) -> np.ndarray:
+    """Client ids of points that join, as sent: integers in uint64 range
+    (ValueError otherwise; they name no existing point)."""
+    a = np.asarray(ids)
+    if a.ndim != 1:
+        raise ValueError(f"{field} must be one-dimensional")
+    if not a.size:
+        return np.zeros(0, np.uint64)
+    if not np.issubdtype(a.dtype, np.integer):
+        raise ValueError(f"{field} must be integers in 0 .. 2**64-1")
+    if np.issubdtype(a.dtype, np.signedinteger) and a.min() < 0:
+        i = int(np.argmax(a < 0))
+        raise ValueError(f"{field}[{i}] = {a[i]}: not in 0 .. 2**64-1")
+    return a.astype(np.uint64)
 
 
 @dataclass
@@ -228,33 +253,69 @@ def create_requests(points, session_id: str, threads: int, ids,
 
 def step_requests(session: str, step: int, mode, values,
                   ids: Optional[Sequence[int]], client_ids: bool,
-                  chunk_points: int,
-                  request_id: str = "") -> List["pb.StepRequest"]:
+                  chunk_points: int, request_id: str = "", *,
+                  add=None, add_ids: Optional[Sequence[int]] = None,
+                  remove: Optional[Sequence[int]] = None
+                  ) -> List["pb.StepRequest"]:
     """The messages of one step (checked before anything is sent);
-    `request_id` names the step (resending it is then safe)."""
-    flat = flat_xy(values)
+    `request_id` names the step (resending it is then safe).
+
+    `values`: (n, 2) deltas or positions of all points (ids None) or of the
+    points named by `ids`; None or empty: no moves. `remove`: ids of points
+    that leave (sequential ids, or client ids when `client_ids`); `add`:
+    (m, 2) positions of points that join, `add_ids` their client ids (one
+    per point; POINT_ID_POLICY_CLIENT sessions need them, sequential ones
+    refuse them). Each message carries at most `chunk_points` moves,
+    leaving and joining points together (moves first, then removals, then
+    additions); the request_id goes on the first, end_of_step on the last.
+    """
+    flat = optional_xy(values, "values")
     id_arr = None if ids is None else point_ids(ids, client_ids)
     if id_arr is not None and 2 * len(id_arr) != len(flat):
         raise ValueError("one (x, y) pair per id")
-    out = []
-    size = 2 * chunk_points
-    start = 0
-    while True:
-        end = min(len(flat), start + size)
-        req = pb.StepRequest(session=session, step=step, mode=mode,
-                             end_of_step=end == len(flat),
-                             request_id=request_id if start == 0 else "")
-        req.xy.extend(flat[start:end].tolist())
+    add_flat = optional_xy(add, "add")
+    add_arr = None if add_ids is None else new_point_ids(add_ids, "add_ids")
+    if add_arr is not None and 2 * len(add_arr) != len(add_flat):
+        raise ValueError(f"add_ids: {len(add_arr)} ids for "
+                         f"{len(add_flat) // 2} added points (one per point)")
+    remove_arr = None if remove is None else point_ids(remove, client_ids,
+                                                       "remove")
+
+    def moves(req, lo, hi):
+        req.xy.extend(flat[2 * lo:2 * hi].tolist())
         if id_arr is not None:
-            part = id_arr[start // 2:end // 2].tolist()
-            if client_ids:
-                req.client_ids.extend(part)
-            else:
-                req.ids.extend(part)
-        out.append(req)
-        start = end
-        if start >= len(flat):
-            return out
+            (req.client_ids if client_ids else req.ids).extend(
+                id_arr[lo:hi].tolist())
+
+    def removals(req, lo, hi):
+        (req.remove_client_ids if client_ids else req.remove_ids).extend(
+            remove_arr[lo:hi].tolist())
+
+    def additions(req, lo, hi):
+        req.add_xy.extend(add_flat[2 * lo:2 * hi].tolist())
+        if add_arr is not None:
+            req.add_client_ids.extend(add_arr[lo:hi].tolist())
+
+    sections = [(len(flat) // 2, moves),
+                (0 if remove_arr is None else len(remove_arr), removals),
+                (len(add_flat) // 2, additions)]
+    chunk_points = max(1, chunk_points)
+    out = [pb.StepRequest(session=session, step=step, mode=mode,
+                          request_id=request_id)]
+    room = chunk_points
+    for count, put in sections:
+        pos = 0
+        while pos < count:
+            if room == 0:
+                out.append(pb.StepRequest(session=session, step=step,
+                                          mode=mode))
+                room = chunk_points
+            take = min(room, count - pos)
+            put(out[-1], pos, pos + take)
+            pos += take
+            room -= take
+    out[-1].end_of_step = True
+    return out
 
 
 def query_request(session: str, kind, *, k: int = 0, radius: float = 0.0,

@@ -42,24 +42,42 @@ class AsyncStepStream:
         return self._next
 
     async def move_by(self, deltas, ids: Optional[Sequence[int]] = None,
-                      request_id: str = "") -> "pb.StepResponse":
+                      request_id: str = "", *, add=None,
+                      add_ids: Optional[Sequence[int]] = None,
+                      remove: Optional[Sequence[int]] = None
+                      ) -> "pb.StepResponse":
         """Moves points by (n, 2) deltas: all points in id order, or the
         points named by `ids`. `request_id` names the step (see
-        StepStream.move_by)."""
+        StepStream.move_by); `add`, `add_ids` and `remove`: points that
+        join and leave with the step (see change)."""
         return await self._send(pb.DISPLACEMENT_MODE_DELTA, deltas, ids,
-                                request_id)
+                                request_id, add, add_ids, remove)
 
     async def move_to(self, positions, ids: Optional[Sequence[int]] = None,
-                      request_id: str = "") -> "pb.StepResponse":
-        """Moves points to (n, 2) absolute positions."""
+                      request_id: str = "", *, add=None,
+                      add_ids: Optional[Sequence[int]] = None,
+                      remove: Optional[Sequence[int]] = None
+                      ) -> "pb.StepResponse":
+        """Moves points to (n, 2) absolute positions; `add`, `add_ids`
+        and `remove` as for move_by."""
         return await self._send(pb.DISPLACEMENT_MODE_ABSOLUTE, positions, ids,
-                                request_id)
+                                request_id, add, add_ids, remove)
 
-    async def _send(self, mode, values, ids,
-                    request_id: str) -> "pb.StepResponse":
+    async def change(self, add=None, add_ids: Optional[Sequence[int]] = None,
+                     remove: Optional[Sequence[int]] = None,
+                     request_id: str = "") -> "pb.StepResponse":
+        """A step in which no point moves, only points leave (`remove`)
+        and join (`add` positions, `add_ids` their client ids); see
+        StepStream.change."""
+        return await self._send(pb.DISPLACEMENT_MODE_DELTA, None, None,
+                                request_id, add, add_ids, remove)
+
+    async def _send(self, mode, values, ids, request_id: str, add=None,
+                    add_ids=None, remove=None) -> "pb.StepResponse":
         requests = step_requests(self._session, self._next, mode, values, ids,
                                  self._client_ids, self._chunk_points,
-                                 request_id)
+                                 request_id, add=add, add_ids=add_ids,
+                                 remove=remove)
         try:
             for req in requests:
                 await self._call.write(req)
@@ -139,11 +157,13 @@ class AsyncClient(ClientBase):
         requests = create_requests(points, session_id, threads, ids,
                                    self._chunk_points)
         try:
-            return await self._stub.CreateSession(
+            s = await self._stub.CreateSession(
                 requests, timeout=self._deadline,
                 metadata=self._md(session_id))
         except grpc.RpcError as e:
             raise_from(e)
+        self._policy[s.name] = ids is not None
+        return s
 
     async def get_session(self, name: str) -> "pb.Session":
         try:

@@ -36,25 +36,56 @@ class StepStream:
         return self._next
 
     def move_by(self, deltas, ids: Optional[Sequence[int]] = None,
-                request_id: str = "") -> "pb.StepResponse":
+                request_id: str = "", *, add=None,
+                add_ids: Optional[Sequence[int]] = None,
+                remove: Optional[Sequence[int]] = None) -> "pb.StepResponse":
         """Moves points by (n, 2) deltas: all points in id order, or the
         points named by `ids` (the client's ids on POINT_ID_POLICY_CLIENT
         sessions). `request_id` names the step: resending a step the server
         already applied under that name (its acknowledgement was lost, e.g.
         on a new stream from open_steps(name, first_step=...)) returns the
-        original acknowledgement and applies nothing."""
-        return self._send(pb.DISPLACEMENT_MODE_DELTA, deltas, ids, request_id)
+        original acknowledgement and applies nothing.
+
+        Points may leave and join with the same step (see `change`):
+        `remove` names the points that leave, `add` gives (m, 2) positions
+        of the points that join, `add_ids` their client ids. The moves use
+        the numbering before the step and apply first."""
+        return self._send(pb.DISPLACEMENT_MODE_DELTA, deltas, ids, request_id,
+                          add, add_ids, remove)
 
     def move_to(self, positions, ids: Optional[Sequence[int]] = None,
-                request_id: str = "") -> "pb.StepResponse":
-        """Moves points to (n, 2) absolute positions."""
+                request_id: str = "", *, add=None,
+                add_ids: Optional[Sequence[int]] = None,
+                remove: Optional[Sequence[int]] = None) -> "pb.StepResponse":
+        """Moves points to (n, 2) absolute positions; `add`, `add_ids`
+        and `remove` as for move_by."""
         return self._send(pb.DISPLACEMENT_MODE_ABSOLUTE, positions, ids,
-                          request_id)
+                          request_id, add, add_ids, remove)
 
-    def _send(self, mode, values, ids, request_id: str) -> "pb.StepResponse":
+    def change(self, add=None, add_ids: Optional[Sequence[int]] = None,
+               remove: Optional[Sequence[int]] = None,
+               request_id: str = "") -> "pb.StepResponse":
+        """A step in which no point moves, only points leave and join.
+
+        `remove`: ids of the points that leave (sequential ids, or the
+        client's ids on POINT_ID_POLICY_CLIENT sessions). `add`: (m, 2)
+        positions of the points that join; `add_ids`: their client ids, one
+        per point (required on POINT_ID_POLICY_CLIENT sessions, refused on
+        sequential ones). Removals apply before additions, so a client id
+        may leave and join again in one step. On sequential sessions the
+        remaining points are numbered 0.. again in their old order and the
+        joining ones follow in the order given: the acknowledgement's
+        stats.first_added_id is the first one's id. stats.point_count is
+        the session's point count after the step."""
+        return self._send(pb.DISPLACEMENT_MODE_DELTA, None, None, request_id,
+                          add, add_ids, remove)
+
+    def _send(self, mode, values, ids, request_id: str, add=None,
+              add_ids=None, remove=None) -> "pb.StepResponse":
         for req in step_requests(self._session, self._next, mode, values, ids,
                                  self._client_ids, self._chunk_points,
-                                 request_id):
+                                 request_id, add=add, add_ids=add_ids,
+                                 remove=remove):
             self._queue.put(req)
         try:
             resp = next(self._responses)
@@ -148,10 +179,14 @@ class Client(ClientBase):
         requests = create_requests(points, session_id, threads, ids,
                                    self._chunk_points)
         try:
-            return self._stub.CreateSession(requests, timeout=self._deadline,
-                                            metadata=self._md(session_id))
+            s = self._stub.CreateSession(requests, timeout=self._deadline,
+                                         metadata=self._md(session_id))
         except grpc.RpcError as e:
             raise_from(e)
+        # The id policy is known (a session made again under an old name
+        # may have another one).
+        self._policy[s.name] = ids is not None
+        return s
 
     def get_session(self, name: str) -> "pb.Session":
         try:
