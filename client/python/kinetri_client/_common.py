@@ -340,6 +340,42 @@ def query_request(session: str, kind, *, k: int = 0, radius: float = 0.0,
     return req
 
 
+def query_messages(request: "pb.QueryRequest",
+                   per: int) -> Optional[List["pb.QueryRequest"]]:
+    """None when the request's targets fit in one message of `per` values
+    (coordinates or ids); else the messages of a StreamQuery: the query with
+    its first targets, then the others `per` values at a time."""
+    which = request.WhichOneof("targets")
+    if which == "positions":
+        values = list(request.positions.xy)
+    elif which == "point_ids":
+        ids = request.point_ids
+        values = list(ids.ids) if len(ids.ids) else list(ids.client_ids)
+        client = len(ids.ids) == 0
+    else:
+        return None
+    per = max(2, per - per % 2)
+    if len(values) <= per:
+        return None
+    out = []
+    for start in range(0, len(values), per):
+        part = values[start:start + per]
+        if start == 0:
+            msg = pb.QueryRequest()
+            msg.CopyFrom(request)
+            msg.ClearField(which)
+        else:
+            msg = pb.QueryRequest()
+        if which == "positions":
+            msg.positions.xy.extend(part)
+        elif client:
+            msg.point_ids.client_ids.extend(part)
+        else:
+            msg.point_ids.ids.extend(part)
+        out.append(msg)
+    return out
+
+
 #: Calls that change nothing are retried on UNAVAILABLE (a server
 #: restarting, a replica behind the proxy coming back), with backoff; a
 #: streamed answer is retried only before its first chunk arrives.

@@ -17,7 +17,8 @@ from kinetri_client._common import (CHUNK_POINTS, DEFAULT_DEADLINE,
                                     ClientBase, Export, ExportBuilder,
                                     Metadata, Neighbors, NeighborsBuilder,
                                     create_requests, new_session_id, pb,
-                                    query_request, raise_from, route,
+                                    query_messages, query_request,
+                                    raise_from, route,
                                     step_requests)
 
 __all__ = ["AsyncClient", "AsyncStepStream"]
@@ -216,10 +217,15 @@ class AsyncClient(ClientBase):
 
     async def query(self, request: "pb.QueryRequest") -> Neighbors:
         out = NeighborsBuilder()
+        # Targets beyond one message go by StreamQuery, cut into messages.
+        msgs = query_messages(request, 2 * self._chunk_points)
         try:
-            async for chunk in self._stub.Query(
-                    request, timeout=self._deadline,
-                    metadata=self._md(request.session)):
+            call = (self._stub.Query(request, timeout=self._deadline,
+                                     metadata=self._md(request.session))
+                    if msgs is None else
+                    self._stub.StreamQuery(iter(msgs), timeout=self._deadline,
+                                           metadata=self._md(request.session)))
+            async for chunk in call:
                 out.add(chunk)
         except grpc.RpcError as e:
             raise_from(e)

@@ -9,7 +9,8 @@ from kinetri_client._common import (CHUNK_POINTS, DEFAULT_DEADLINE,
                                     ClientBase, Export, ExportBuilder,
                                     KinetriError, Metadata, Neighbors,
                                     NeighborsBuilder, create_requests,
-                                    new_session_id, pb, query_request,
+                                    new_session_id, pb, query_messages,
+                                    query_request,
                                     raise_from, route, step_requests)
 
 __all__ = ["Client", "StepStream"]
@@ -242,9 +243,16 @@ class Client(ClientBase):
     # Queries ----------------------------------------------------------------
     def query(self, request: "pb.QueryRequest") -> Neighbors:
         out = NeighborsBuilder()
+        # Targets beyond one message go by StreamQuery, cut into messages.
+        msgs = query_messages(request, 2 * self._chunk_points)
         try:
-            for chunk in self._stub.Query(request, timeout=self._deadline,
-                                          metadata=self._md(request.session)):
+            chunks = (self._stub.Query(request, timeout=self._deadline,
+                                       metadata=self._md(request.session))
+                      if msgs is None else
+                      self._stub.StreamQuery(
+                          iter(msgs), timeout=self._deadline,
+                          metadata=self._md(request.session)))
+            for chunk in chunks:
                 out.add(chunk)
         except grpc.RpcError as e:
             raise_from(e)

@@ -234,6 +234,37 @@ class ClientTest(ServerTestCase):
             c.delete_session(s.name)
 
 
+class StreamQueryTest(ServerTestCase):
+    """Query targets beyond one message go by StreamQuery (sync and
+    asyncio); the answers equal brute force."""
+
+    def test_many_targets(self):
+        import asyncio
+        from kinetri_client.aio import AsyncClient
+        rng = np.random.default_rng(12)
+        pts = rng.random((1500, 2))
+        q = rng.random((2500, 2))
+        ids = np.arange(0, 1500, 1)
+        with Client(self.target, chunk_points=200) as c:
+            s = c.create_session(pts)
+            knn = c.knn(s.name, 3, points=q)
+            self.assertEqual(len(knn.offsets), len(q) + 1)
+            for r in range(0, len(q), 17):
+                want, _ = rank(pts, q[r])
+                self.assertTrue(np.array_equal(knn.row(r), want[:3]), r)
+            by_id = c.knn(s.name, 2, ids=ids)
+            for r in range(0, len(ids), 13):
+                want, _ = rank(pts, pts[ids[r]], skip=ids[r])
+                self.assertTrue(np.array_equal(by_id.row(r), want[:2]), r)
+
+            async def run():
+                async with AsyncClient(self.target, chunk_points=200) as a:
+                    return await a.knn(s.name, 3, points=q)
+            aknn = asyncio.run(run())
+            self.assertTrue(np.array_equal(aknn.ids, knn.ids))
+            c.delete_session(s.name)
+
+
 def rank(xy, q, skip=None):
     """Indices of `xy` in the order queries answer from `q`: squared
     distance, ties between distinct positions to the larger x, then the
