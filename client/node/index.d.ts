@@ -67,6 +67,17 @@ export interface StepStats {
   delaunayFlips: number;
   fallbackReason: string;
   updateSeconds: number;
+  /** Points that left with this step. */
+  removedPoints: number;
+  /** Points that joined with this step. */
+  addedPoints: number;
+  /** The session's point count after the step. */
+  pointCount: number;
+  /**
+   * Sequential sessions: id of the first joining point (the others follow
+   * in the order sent); 0 when none joined and on client-id sessions.
+   */
+  firstAddedId: number;
 }
 
 export interface StepAck {
@@ -107,6 +118,28 @@ export interface Targets {
   excludeSelf?: boolean;
 }
 
+/** Points that leave and join with a step (StepStream.change, moveBy, moveTo). */
+export interface PointChanges {
+  /** Positions of the points that join (interleaved x, y). */
+  add?: Coordinates | null;
+  /**
+   * Client ids of the joining points, one per point: required on
+   * POINT_ID_POLICY_CLIENT sessions, refused on sequential ones (which
+   * number joining points after the remaining ones).
+   */
+  addIds?: Iterable<PointId> | null;
+  /** Ids of the points that leave (client ids on POINT_ID_POLICY_CLIENT sessions). */
+  remove?: Iterable<PointId> | null;
+}
+
+export interface StepOptions extends PointChanges {
+  /**
+   * Names the step: resending a step already applied under it returns the
+   * original acknowledgement and applies nothing.
+   */
+  requestId?: string;
+}
+
 /** A failed call: `code` is a gRPC status code (see `status`). */
 export class KinetriError extends Error {
   code: number;
@@ -117,15 +150,25 @@ export class StepStream {
   readonly session: string;
   nextStep: number;
   /**
-   * Moves points by interleaved deltas: all, or those named by `ids`.
-   * `requestId` names the step: resending a step already applied under it
-   * returns the original acknowledgement and applies nothing.
+   * Moves points by interleaved deltas: all, or those named by `ids` (the
+   * numbering before the step). `requestId` names the step: resending a
+   * step already applied under it returns the original acknowledgement and
+   * applies nothing. `add`, `addIds`, `remove`: points that join and leave
+   * with the step (see change).
    */
   moveBy(deltas: Coordinates, ids?: Iterable<PointId> | null,
-         options?: {requestId?: string}): Promise<StepAck>;
+         options?: StepOptions): Promise<StepAck>;
   /** Moves points to absolute positions: all, or those named by `ids`. */
   moveTo(positions: Coordinates, ids?: Iterable<PointId> | null,
-         options?: {requestId?: string}): Promise<StepAck>;
+         options?: StepOptions): Promise<StepAck>;
+  /**
+   * A step in which no point moves; points leave (`remove`) and join
+   * (`add`, with `addIds` on client-id sessions). Removals apply before
+   * additions. Sequential sessions number the remaining points 0.. again
+   * in their old order and the joining ones after them
+   * (`stats.firstAddedId`); client ids never change.
+   */
+  change(changes?: StepOptions): Promise<StepAck>;
   close(): Promise<void>;
 }
 

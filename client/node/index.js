@@ -69,7 +69,8 @@ function toSession(s) {
           step: Number(s.step)};
 }
 
-// Every 64-bit counter of a message (strings from the loader) as a Number.
+// Every 64-bit counter of a message (strings from the loader) as a Number
+// (StepStats: pointCount, firstAddedId, interiorFixFlips, ...).
 function numbers(obj) {
   const out = {};
   for (const [k, v] of Object.entries(obj)) {
@@ -78,15 +79,24 @@ function numbers(obj) {
   return out;
 }
 
+// One id as a BigInt: a BigInt, an integral Number or a decimal string
+// (null otherwise; an empty string is not 0).
+function toBigInt(id) {
+  if (typeof id === 'bigint') return id;
+  if (typeof id === 'number') return Number.isInteger(id) ? BigInt(id) : null;
+  if (typeof id === 'string' && /^-?[0-9]+$/.test(id.trim())) {
+    return BigInt(id.trim());
+  }
+  return null;
+}
+
 // Point ids for a request: client ids as decimal strings (exact 64-bit),
 // sequential ids checked to be integers in [0, 2^32) (NOT_FOUND otherwise,
 // as the server says for an id it does not know).
 function pointIds(ids, clientIds, field = 'ids') {
   return Array.from(ids, (id, i) => {
-    let big;
-    try {
-      big = BigInt(id);
-    } catch (e) {
+    const big = toBigInt(id);
+    if (big === null) {
       throw new KinetriError({code: grpc.status.INVALID_ARGUMENT,
                               details: `${field}[${i}] = ${id}: not an integer`});
     }
@@ -97,6 +107,41 @@ function pointIds(ids, clientIds, field = 'ids') {
     }
     return clientIds ? big.toString() : Number(big);
   });
+}
+
+// Client ids of points that join (they name no point yet): integers in
+// [0, 2^64) as decimal strings, INVALID_ARGUMENT otherwise.
+function newPointIds(ids, field) {
+  return Array.from(ids, (id, i) => {
+    const big = toBigInt(id);
+    if (big === null || big < 0n || big >= (1n << 64n)) {
+      throw new KinetriError({
+        code: grpc.status.INVALID_ARGUMENT,
+        details: `${field}[${i}] = ${id}: not an integer in 0 .. 2^64-1`});
+    }
+    return big.toString();
+  });
+}
+
+// Interleaved x, y (null/undefined: none) as an Array of numbers, checked
+// to hold numbers in pairs (the server checks that they are finite).
+function coordinates(values, field) {
+  const out = values == null ? [] : Array.from(values);
+  for (let i = 0; i < out.length; i++) {
+    if (typeof out[i] !== 'number') {
+      throw new KinetriError({
+        code: grpc.status.INVALID_ARGUMENT,
+        details: `${field}[${i}]: ${typeof out[i]}, expected a number ` +
+                 '(interleaved x, y)'});
+    }
+  }
+  if (out.length % 2 !== 0) {
+    throw new KinetriError({
+      code: grpc.status.INVALID_ARGUMENT,
+      details: `${field}: ${out.length} coordinates is odd (expected x, y ` +
+               'pairs)'});
+  }
+  return out;
 }
 
 function wrap(promiseFn) {
@@ -142,39 +187,110 @@ class StepStream {
   // already applied under that name (its acknowledgement was lost, e.g. on
   // a new stream from openSteps(name, {firstStep})) returns the original
   // acknowledgement and applies nothing.
-  moveBy(deltas, ids, {requestId = ''} = {}) {
-    return this.send('DISPLACEMENT_MODE_DELTA', deltas, ids, requestId);
+  // add, addIds, remove (optional): points that join and leave with the
+  // step, see change(); the moves use the numbering before the step.
+  moveBy(deltas, ids, options = {}) {
+    return this.send('DISPLACEMENT_MODE_DELTA', deltas, ids, options);
   }
-  moveTo(positions, ids, {requestId = ''} = {}) {
-    return this.send('DISPLACEMENT_MODE_ABSOLUTE', positions, ids, requestId);
+  moveTo(positions, ids, options = {}) {
+    return this.send('DISPLACEMENT_MODE_ABSOLUTE', positions, ids, options);
   }
 
-  send(mode, values, ids, requestId = '') {
+  // A step in which no point moves; points leave and join:
+  //   remove: ids of the points that leave (sequential ids, or the client's
+  //     ids on POINT_ID_POLICY_CLIENT sessions);
+  //   add: interleaved x, y of the points that join;
+  //   addIds: their client ids, one per point (POINT_ID_POLICY_CLIENT
+  //     sessions need them, sequential sessions refuse them).
+  // Moves apply first, then removals, then additions (a client id may leave
+  // and join again in one step). Sequential sessions number the remaining
+  // points 0.. again in their old order and the joining ones after them,
+  // in the order given: stats.firstAddedId is the first one's id;
+  // stats.pointCount is the session's point count after the step.
+  change({add, addIds, remove, requestId = ''} = {}) {
+    return this.send('DISPLACEMENT_MODE_DELTA', null, null,
+                     {add, addIds, remove, requestId});
+  }
+
+  // The messages of one step, checked before anything is sent. Each
+  // carries at most chunkValues / 2 entries: moves first, then the points
+  // that leave, then those that join (each list split across messages as
+  // needed); requestId on the first, endOfStep on the last.
+  requests(mode, values, ids, {requestId = '', add, addIds, remove} = {}) {
+    const xy = coordinates(
+        values, mode === 'DISPLACEMENT_MODE_DELTA' ? 'deltas' : 'positions');
+    const idList = ids == null ? null : pointIds(ids, this.clientIds);
+    if (idList && 2 * idList.length !== xy.length) {
+      throw new Error('one (x, y) pair per id');
+    }
+    const addXy = coordinates(add, 'add');
+    const addIdList = addIds == null ? [] : newPointIds(addIds, 'addIds');
+    if (this.clientIds) {
+      if (2 * addIdList.length !== addXy.length) {
+        throw new KinetriError({
+          code: grpc.status.INVALID_ARGUMENT,
+          details: `addIds: ${addIdList.length} ids for ${addXy.length / 2} ` +
+                   'added points (POINT_ID_POLICY_CLIENT sessions name each ' +
+                   'point)'});
+      }
+    } else if (addIdList.length > 0) {
+      throw new KinetriError({
+        code: grpc.status.INVALID_ARGUMENT,
+        details: 'addIds: this session numbers points sequentially (joining ' +
+                 'points are numbered after the others)'});
+    }
+    const removeList = remove == null ? [] :
+      pointIds(remove, this.clientIds, 'remove');
+
+    const head = () => ({session: this.session, step: this.nextStep, mode});
+    const out = [{...head(), requestId}];
+    const perMessage = Math.max(1, Math.floor(this.chunkValues / 2));
+    let room = perMessage;
+    const sections = [
+      [xy.length / 2, (req, lo, hi) => {
+        req.xy = xy.slice(2 * lo, 2 * hi);
+        if (idList) {
+          req[this.clientIds ? 'clientIds' : 'ids'] = idList.slice(lo, hi);
+        }
+      }],
+      [removeList.length, (req, lo, hi) => {
+        req[this.clientIds ? 'removeClientIds' : 'removeIds'] =
+          removeList.slice(lo, hi);
+      }],
+      [addXy.length / 2, (req, lo, hi) => {
+        req.addXy = addXy.slice(2 * lo, 2 * hi);
+        if (this.clientIds) req.addClientIds = addIdList.slice(lo, hi);
+      }],
+    ];
+    for (const [count, put] of sections) {
+      for (let pos = 0; pos < count;) {
+        if (room === 0) {
+          out.push(head());
+          room = perMessage;
+        }
+        const take = Math.min(room, count - pos);
+        put(out[out.length - 1], pos, pos + take);
+        pos += take;
+        room -= take;
+      }
+    }
+    out[out.length - 1].endOfStep = true;
+    return out;
+  }
+
+  send(mode, values, ids, options = {}) {
     if (this.error) return Promise.reject(this.error);
-    const xy = Array.from(values);
-    let idList = null;
+    if (typeof options === 'string') options = {requestId: options};
+    let reqs;
     try {
-      if (ids) idList = pointIds(ids, this.clientIds);
+      reqs = this.requests(mode, values, ids, options);
     } catch (e) {
       return Promise.reject(e);
-    }
-    if (idList && 2 * idList.length !== xy.length) {
-      return Promise.reject(new Error('one (x, y) pair per id'));
     }
     const result = new Promise((resolve, reject) => {
       this.pending.push({resolve, reject});
     });
-    for (let i = 0; ; i += this.chunkValues) {
-      const end = Math.min(xy.length, i + this.chunkValues);
-      const req = {session: this.session, step: this.nextStep, mode,
-                   xy: xy.slice(i, end), endOfStep: end === xy.length,
-                   requestId: i === 0 ? requestId : ''};
-      if (idList) {
-        req[this.clientIds ? 'clientIds' : 'ids'] = idList.slice(i / 2, end / 2);
-      }
-      this.call.write(req);
-      if (end >= xy.length) break;
-    }
+    for (const req of reqs) this.call.write(req);
     this.nextStep += 1;
     return result;
   }

@@ -46,6 +46,11 @@ proc.stdout.on('data', async (data) => {
     const steps = await client.openSteps(s.name);
     const ack = await steps.moveBy(new Float64Array(2 * n).fill(0.001));
     assert.strictEqual(ack.step, 1);
+    // Points that leave and join: survivors renumbered, joiners after them.
+    const change = await steps.change({add: [2, 2], remove: [0]});
+    assert.deepStrictEqual([change.step, change.stats.removedPoints,
+                            change.stats.addedPoints, change.stats.pointCount,
+                            change.stats.firstAddedId], [2, 1, 1, n, n - 1]);
     await steps.close();
     const knn = await client.kNearest(s.name, 3, {ids: [0, 1]});
     assert.ok(knn.ids instanceof Uint32Array);
@@ -55,7 +60,7 @@ proc.stdout.on('data', async (data) => {
     await client.deleteSession(s.name);
     await assert.rejects(client.getSession(s.name),
                          (e) => e.code === status.NOT_FOUND);
-    console.log('npm package: create, step, query, export, delete: ok');
+    console.log('npm package: create, step, change, query, export, delete: ok');
   } catch (e) {
     console.error(e);
     process.exitCode = 1;
@@ -78,6 +83,9 @@ async function run(target: string): Promise<number> {
   const s = await client.createSession(xy, newSessionId(), {ids: [1n, 2n]});
   const steps = await client.openSteps(s.name);
   const ack: StepAck = await steps.moveBy(xy, [1n]);
+  const joined: StepAck = await steps.change({add: [0.1, 0.2], addIds: [3n],
+                                              remove: ['1'], requestId: 'r'});
+  await steps.moveTo(xy, null, {add: new Float64Array(2), addIds: [4], remove: []});
   const nn: Neighbors = await client.kNearest(s.name, 4, {positions: [0.5, 0.5]});
   const first: number = nn.ids[nn.offsets[0]];
   const far: bigint = nn.clientIds[0];
@@ -91,7 +99,9 @@ async function run(target: string): Promise<number> {
     if (e instanceof KinetriError && e.code === status.NOT_FOUND) return 0;
   }
   return ack.step + first + Number(far) + triangle + SESSION_HEADER.length +
-      s.pointCount + ack.stats.delaunayFlips;
+      s.pointCount + ack.stats.delaunayFlips + joined.stats.pointCount +
+      joined.stats.firstAddedId + joined.stats.removedPoints +
+      joined.stats.addedPoints;
 }
 void run;
 TS
