@@ -452,12 +452,44 @@ class Client {
     }
   }
 
+  // Query, or StreamQuery when the targets (positions or ids) are more
+  // than one message carries: the query with its first targets, then the
+  // others chunkValues at a time.
+  openQuery(request) {
+    const per = this.chunkValues;
+    const pos = request.positions && request.positions.xy;
+    const pid = request.pointIds;
+    const list = pos ? Array.from(pos)
+                     : pid ? Array.from((pid.ids && pid.ids.length)
+                                            ? pid.ids : (pid.clientIds || []))
+                           : [];
+    if (list.length <= per) {
+      return this.stub.Query(request, route(request.session),
+                             this.callOptions());
+    }
+    const field = pos ? 'xy' : ((pid.ids && pid.ids.length) ? 'ids'
+                                                            : 'clientIds');
+    const call = this.stub.StreamQuery(route(request.session),
+                                       this.callOptions());
+    for (let i = 0; i < list.length; i += per) {
+      const part = list.slice(i, i + per);
+      const msg = i === 0 ? {...request} : {};
+      if (pos) {
+        msg.positions = {xy: part};
+      } else {
+        msg.pointIds = {[field]: part};
+      }
+      call.write(msg);
+    }
+    call.end();
+    return call;
+  }
+
   query(request) {
     return new Promise((resolve, reject) => {
       const out = {step: 0, offsets: [0], ids: [], distances: [],
                    truncatedRows: [], clientIds: []};
-      const call = this.stub.Query(request, route(request.session),
-                                   this.callOptions());
+      const call = this.openQuery(request);
       let continues = false;  // the last row goes on in this chunk
       call.on('data', (chunk) => {
         out.step = Number(chunk.step);

@@ -902,3 +902,35 @@ test('join and leave: step messages', () => {
   const sizes = sent.map((r) => method.requestSerialize(r).length);
   assert.ok(Math.max(...sizes) < 4 << 20, `message sizes ${sizes}`);
 });
+
+test('query targets beyond one message go by StreamQuery', async () => {
+  const {proc, target} = await startServer();
+  const client = new Client(target, {chunkPoints: 100});
+  try {
+    const rand = rng(21);
+    const n = 800;
+    const xy = new Float64Array(2 * n).map(() => rand());
+    const s = await client.createSession(xy);
+    const q = new Float64Array(2 * 700).map(() => rand());  // 7 messages
+    const knn = await client.kNearest(s.name, 3, {positions: q});
+    assert.strictEqual(knn.offsets.length, 701);
+    const d2 = (a, x, y) => (xy[2 * a] - x) ** 2 + (xy[2 * a + 1] - y) ** 2;
+    for (let r = 0; r < 700; r += 23) {
+      const x = q[2 * r], y = q[2 * r + 1];
+      const order = [...Array(n).keys()].sort(
+          (a, b) => d2(a, x, y) - d2(b, x, y));
+      assert.deepStrictEqual([...knn.ids.slice(knn.offsets[r],
+                                               knn.offsets[r + 1])],
+                             order.slice(0, 3), `query ${r}`);
+    }
+    const ids = [...Array(n).keys()];  // 800 ids: 4 messages
+    const byId = await client.kNearest(s.name, 1, {ids});
+    assert.strictEqual(byId.offsets.length, n + 1);
+    const nn = await client.nearestAll(s.name);
+    assert.deepStrictEqual([...byId.ids], [...nn.ids]);
+    await client.deleteSession(s.name);
+  } finally {
+    client.close();
+    proc.kill();
+  }
+});
