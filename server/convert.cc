@@ -38,11 +38,22 @@ absl::Status StepAssembler::Add(const v1::StepRequest& chunk) {
   }
   const bool client = chunk.client_ids_size() > 0;
   const bool sparse = chunk.ids_size() > 0 || client;
+  // (Chunks with only points that leave or join carry no moves: the first
+  // chunk with moves says whether the step is dense or sparse.)
+  const bool moves = chunk.xy_size() > 0 || chunk.ids_size() > 0 ||
+                     chunk.client_ids_size() > 0;
+  if (moves && !moves_seen_) {
+    moves_seen_ = true;
+    sparse_ = sparse;
+    client_ = client;
+  } else if (moves && sparse != sparse_) {
+    return absl::InvalidArgumentError(
+        "ids: a step is either dense (no ids) or sparse (ids in every "
+        "chunk)");
+  }
   if (chunks_ == 0) {
     step_ = chunk.step();
     mode_ = mode;
-    sparse_ = sparse;
-    client_ = client;
   } else {
     if (chunk.step() != step_) {
       return absl::InvalidArgumentError(
@@ -51,11 +62,6 @@ absl::Status StepAssembler::Add(const v1::StepRequest& chunk) {
     }
     if (mode != mode_) {
       return absl::InvalidArgumentError("mode: changes within one step");
-    }
-    if (sparse != sparse_ && chunk.xy_size() > 0) {
-      return absl::InvalidArgumentError(
-          "ids: a step is either dense (no ids) or sparse (ids in every "
-          "chunk)");
     }
   }
   const size_t before = values_.size();
@@ -70,9 +76,6 @@ absl::Status StepAssembler::Add(const v1::StepRequest& chunk) {
                             chunk.remove_client_ids().end());
   add_client_ids_.insert(add_client_ids_.end(), chunk.add_client_ids().begin(),
                          chunk.add_client_ids().end());
-  // (Chunks with only points that leave or join carry no moves.)
-  const bool moves = chunk.xy_size() > 0 || chunk.ids_size() > 0 ||
-                     chunk.client_ids_size() > 0;
   if (sparse_ && moves) {
     if (client != client_) {
       return absl::InvalidArgumentError(
@@ -101,6 +104,8 @@ absl::StatusOr<AssembledStep> StepAssembler::Take(const Session& session) {
   std::vector<uint64_t> client_ids = std::move(client_ids_);
   client_ids_.clear();
   client_ = false;
+  sparse_ = false;
+  moves_seen_ = false;
   std::vector<uint32_t> remove_ids = std::move(remove_ids_);
   std::vector<uint64_t> remove_client_ids = std::move(remove_client_ids_);
   std::vector<uint64_t> add_client_ids = std::move(add_client_ids_);

@@ -55,6 +55,7 @@ class StepAssembler {
   uint64_t step_ = 0;
   std::string request_id_;
   bool sparse_ = false;
+  bool moves_seen_ = false;  // a chunk of this step carried moves
   v1::DisplacementMode mode_ = v1::DISPLACEMENT_MODE_DELTA;
   bool client_ = false;
   std::vector<uint32_t> ids_;

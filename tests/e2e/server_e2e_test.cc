@@ -576,6 +576,45 @@ TEST_F(E2eTest, PointsJoinAndLeave) {
   }
 }
 
+// The lists of a step may come in any chunk order: a chunk of leaving
+// points before the (sparse) moves.
+TEST_F(E2eTest, StepChunksInAnyOrder) {
+  std::vector<double> xy = Uniform(50, 81);
+  auto s = client_->CreateSession(xy, v1::SessionOptions());
+  ASSERT_TRUE(s.ok()) << s.status();
+  grpc::ClientContext ctx;
+  client_->Prepare(&ctx, s->name());
+  auto stream = client_->stub()->StreamSteps(&ctx);
+  v1::StepRequest a, b;
+  a.set_session(s->name());
+  a.set_step(1);
+  a.add_remove_ids(5);
+  b.set_step(1);
+  b.add_ids(3);
+  b.add_xy(0.001);
+  b.add_xy(0.0);
+  b.add_add_xy(0.5);
+  b.add_add_xy(0.25);
+  b.set_end_of_step(true);
+  ASSERT_TRUE(stream->Write(a));
+  ASSERT_TRUE(stream->Write(b));
+  v1::StepResponse resp;
+  ASSERT_TRUE(stream->Read(&resp));
+  EXPECT_EQ(resp.stats().removed_points(), 1u);
+  EXPECT_EQ(resp.stats().added_points(), 1u);
+  EXPECT_EQ(resp.stats().moved_points(), 1u);
+  EXPECT_EQ(resp.stats().point_count(), 50u);
+  stream->WritesDone();
+  EXPECT_TRUE(stream->Finish().ok());
+  auto mesh = client_->Export(s->name());
+  ASSERT_TRUE(mesh.ok());
+  xy[6] += 0.001;
+  xy.erase(xy.begin() + 10, xy.begin() + 12);
+  xy.push_back(0.5);
+  xy.push_back(0.25);
+  EXPECT_EQ(mesh->xy, xy);
+}
+
 // Server reflection v1 (and v1alpha, the same messages) describe the API:
 // services, the file of a symbol with its imports, errors for unknown names.
 TEST_F(E2eTest, ReflectionV1AndV1alpha) {
