@@ -57,6 +57,26 @@ absl::Status CheckPosition(const Vec2& p, absl::string_view field,
   return CheckCoordinate(p.y, field, index, "y");
 }
 
+// ids[i] < seen.size() and pairwise distinct (errors name `field`); marks
+// each in `seen`.
+absl::Status MarkDistinctIds(absl::Span<const uint32_t> ids, const char* field,
+                             std::vector<uint8_t>& seen) {
+  const size_t n = seen.size();
+  for (size_t i = 0; i < ids.size(); ++i) {
+    const uint32_t ext = ids[i];
+    if (ext >= n) {
+      return absl::NotFoundError(absl::StrCat(
+          field, "[", i, "] = ", ext, ": no such point (size ", n, ")"));
+    }
+    if (seen[ext]) {
+      return absl::InvalidArgumentError(
+          absl::StrCat(field, "[", i, "] = ", ext, " appears twice"));
+    }
+    seen[ext] = 1;
+  }
+  return absl::OkStatus();
+}
+
 Vec2 Midpoint(const Vec2& a, const Vec2& b) {
   return {a.x + 0.5 * (b.x - a.x), a.y + 0.5 * (b.y - a.y)};
 }
@@ -74,18 +94,18 @@ std::optional<Vec2> HalfwayGoal(const Vec2& a, const Vec2& b) {
 }  // namespace
 
 DisplacementBatch DisplacementBatch::Dense(std::vector<Vec2> deltas) {
-  return {Mode::kDelta, {}, std::move(deltas)};
+  return {Mode::kDelta, {}, std::move(deltas), {}, {}};
 }
 DisplacementBatch DisplacementBatch::Sparse(std::vector<uint32_t> ids,
                                             std::vector<Vec2> deltas) {
-  return {Mode::kDelta, std::move(ids), std::move(deltas)};
+  return {Mode::kDelta, std::move(ids), std::move(deltas), {}, {}};
 }
 DisplacementBatch DisplacementBatch::Absolute(std::vector<Vec2> positions) {
-  return {Mode::kAbsolute, {}, std::move(positions)};
+  return {Mode::kAbsolute, {}, std::move(positions), {}, {}};
 }
 DisplacementBatch DisplacementBatch::AbsoluteSparse(
     std::vector<uint32_t> ids, std::vector<Vec2> positions) {
-  return {Mode::kAbsolute, std::move(ids), std::move(positions)};
+  return {Mode::kAbsolute, std::move(ids), std::move(positions), {}, {}};
 }
 
 const char* ExecutorName(Executor executor) {
@@ -330,6 +350,15 @@ bool Triangulation::Rebuild(const std::vector<Vec2>& positions_by_ext,
   }
   baseline_span_ = MeanEdgeSpan();
   return true;
+}
+
+void Triangulation::RefreshSites() {
+  sites_.clear();
+  has_duplicates_ = false;
+  for (uint32_t i = 0; i < size(); ++i) {
+    if (rep_[i] == i) sites_.push_back(i);
+    if (dup_next_[i] != kNoVertex) has_duplicates_ = true;
+  }
 }
 
 double Triangulation::MeanEdgeSpan() const {
@@ -923,12 +952,7 @@ bool Triangulation::FinishLocalStep(std::vector<Vec2>& next,
     mesh_.Compact();
     MeshChangedOnHost();
   }
-  sites_.clear();
-  has_duplicates_ = false;
-  for (uint32_t i = 0; i < n; ++i) {
-    if (rep_[i] == i) sites_.push_back(i);
-    if (dup_next_[i] != kNoVertex) has_duplicates_ = true;
-  }
+  RefreshSites();
   return true;
 }
 
@@ -1146,12 +1170,7 @@ bool Triangulation::JoinAndLeave(const std::vector<uint32_t>& leaving,
   mesh_.ResizeVertices(n_new);
   // (Triangle slots are not re-sorted here: the periodic renumbering
   // restores their spatial order.)
-  sites_.clear();
-  has_duplicates_ = false;
-  for (uint32_t i = 0; i < n_new; ++i) {
-    if (rep_[i] == i) sites_.push_back(i);
-    if (dup_next_[i] != kNoVertex) has_duplicates_ = true;
-  }
+  RefreshSites();
   report->removed_points = static_cast<uint32_t>(leaving.size());
   report->added_points = m;
   return true;
@@ -1187,17 +1206,9 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
           "add: ", after, " points after this step exceed the limit of 2^29"));
     }
     leaves.assign(n, 0);
-    for (size_t i = 0; i < batch.remove.size(); ++i) {
-      const uint32_t ext = batch.remove[i];
-      if (ext >= n) {
-        return absl::NotFoundError(absl::StrCat(
-            "remove[", i, "] = ", ext, ": no such point (size ", n, ")"));
-      }
-      if (leaves[ext]) {
-        return absl::InvalidArgumentError(
-            absl::StrCat("remove[", i, "] = ", ext, " appears twice"));
-      }
-      leaves[ext] = 1;
+    if (absl::Status s = MarkDistinctIds(batch.remove, "remove", leaves);
+        !s.ok()) {
+      return s;
     }
     for (size_t i = 0; i < batch.add.size(); ++i) {
       absl::Status s = CheckPosition(batch.add[i], "add", i);
@@ -1250,17 +1261,11 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
   } else {
     next = pos_;
     std::vector<uint8_t> seen(n, 0);
+    if (absl::Status s = MarkDistinctIds(batch.ids, "ids", seen); !s.ok()) {
+      return s;
+    }
     for (size_t i = 0; i < batch.ids.size(); ++i) {
       const uint32_t ext = batch.ids[i];
-      if (ext >= n) {
-        return absl::NotFoundError(absl::StrCat(
-            "ids[", i, "] = ", ext, ": no such point (size ", n, ")"));
-      }
-      if (seen[ext]) {
-        return absl::InvalidArgumentError(
-            absl::StrCat("ids[", i, "] = ", ext, " appears twice"));
-      }
-      seen[ext] = 1;
       if (!leaves.empty() && leaves[ext]) {
         return absl::InvalidArgumentError(
             absl::StrCat("ids[", i, "] = ", ext,

@@ -279,6 +279,8 @@ class Triangulation {
   // Positions after `leaving` leave and `joining` join, in the new order.
   std::vector<Vec2> JoinedPositions(const std::vector<uint32_t>& leaving,
                                     const std::vector<Vec2>& joining) const;
+  // sites_ and has_duplicates_ from rep_ and dup_next_.
+  void RefreshSites();
   double MeanEdgeSpan() const;
   // Smallest external id among the points of the site of vertex v.
   uint32_t SiteId(uint32_t v) const;
