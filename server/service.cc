@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
+#include <cstdlib>
 #include <optional>
 
 #include "absl/container/flat_hash_map.h"
@@ -11,6 +12,7 @@
 #include "absl/strings/str_cat.h"
 #include "core/queries.h"
 #include "server/convert.h"
+#include "server/message_reader.h"
 
 namespace kinetri::server {
 namespace {
@@ -108,6 +110,22 @@ v1::Session Describe(const Session& s) {
   *out.mutable_create_time() = ToTimestamp(s.create_time());
   *out.mutable_update_time() = ToTimestamp(snap.update_time);
   return out;
+}
+
+// Index of `method` in the service (the generated service registers its
+// methods in the order of the proto's definition).
+int MethodIndex(const char* method) {
+  const google::protobuf::ServiceDescriptor* service =
+      google::protobuf::DescriptorPool::generated_pool()->FindServiceByName(
+          kServiceName);
+  const google::protobuf::MethodDescriptor* m =
+      service == nullptr ? nullptr : service->FindMethodByName(method);
+  if (m == nullptr) {
+    std::fprintf(stderr, "kinetri-server: %s.%s missing from the proto\n",
+                 kServiceName, method);
+    std::abort();
+  }
+  return m->index();
 }
 
 }  // namespace
@@ -278,20 +296,63 @@ absl::StatusOr<Tenant> KinetriServiceImpl::Caller(
   return auth_->Authenticate(ctx);
 }
 
+KinetriServiceImpl::KinetriServiceImpl(SessionRegistry* registry,
+                                       Metrics* metrics, IdleWatchdog* watchdog,
+                                       MemoryBudget* budget,
+                                       const TokenAuth* auth)
+    : registry_(registry),
+      metrics_(metrics),
+      watchdog_(watchdog),
+      budget_(budget),
+      auth_(auth) {
+  // The streaming RPCs take their requests as bytes (see
+  // server/message_reader.h); still synchronous handlers.
+  using Self = KinetriServiceImpl;
+  MarkMethodStreamed(
+      MethodIndex("CreateSession"),
+      new grpc::internal::ClientStreamingHandler<Self, grpc::ByteBuffer,
+                                                 v1::Session>(
+          [](Self* self, grpc::ServerContext* ctx,
+             grpc::ServerReader<grpc::ByteBuffer>* reader,
+             v1::Session* response) {
+            return self->CreateSessionFromBytes(ctx, reader, response);
+          },
+          this));
+  MarkMethodStreamed(
+      MethodIndex("StreamSteps"),
+      new grpc::internal::BidiStreamingHandler<Self, grpc::ByteBuffer,
+                                               v1::StepResponse>(
+          [](Self* self, grpc::ServerContext* ctx,
+             grpc::ServerReaderWriter<v1::StepResponse, grpc::ByteBuffer>*
+                 stream) { return self->StreamStepsFromBytes(ctx, stream); },
+          this));
+  MarkMethodStreamed(
+      MethodIndex("StreamQuery"),
+      new grpc::internal::BidiStreamingHandler<Self, grpc::ByteBuffer,
+                                               v1::QueryResponse>(
+          [](Self* self, grpc::ServerContext* ctx,
+             grpc::ServerReaderWriter<v1::QueryResponse, grpc::ByteBuffer>*
+                 stream) { return self->StreamQueryFromBytes(ctx, stream); },
+          this));
+}
+
 void KinetriServiceImpl::UpdateGauges() {
   metrics_->SetSessions(static_cast<double>(registry_->size()),
                         static_cast<double>(registry_->total_points()));
 }
 
-grpc::Status KinetriServiceImpl::CreateSession(
-    grpc::ServerContext* ctx,
-    grpc::ServerReader<v1::CreateSessionRequest>* reader,
+grpc::Status KinetriServiceImpl::CreateSessionFromBytes(
+    grpc::ServerContext* ctx, grpc::ServerReader<grpc::ByteBuffer>* reader,
     v1::Session* response) {
   RpcScope rpc(metrics_, "CreateSession", "client_stream");
   auto tenant = Caller(*ctx);
   if (!tenant.ok()) return rpc.Done(ToGrpc(tenant.status()));
   v1::CreateSessionRequest msg;
-  if (!reader->Read(&msg) || !msg.has_header()) {
+  MessageReader<v1::CreateSessionRequest, grpc::ServerReader<grpc::ByteBuffer>>
+      messages(reader);
+  absl::StatusOr<bool> got = messages.Read(&msg);
+  if (!got.ok()) return rpc.Done(ToGrpc(got.status()));
+  if (!*got || !msg.has_header()) {
     return rpc.Done(grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                                  "header: the first message must carry the "
                                  "session header"));
@@ -346,7 +407,10 @@ grpc::Status KinetriServiceImpl::CreateSession(
   std::vector<uint64_t> ids;
   uint64_t chunk = 0;
   IdleWatchdog::Registration idle(watchdog_, ctx);
-  while (reader->Read(&msg)) {
+  while (true) {
+    got = messages.Read(&msg);
+    if (!got.ok()) return rpc.Done(ToGrpc(got.status()));
+    if (!*got) break;
     idle.Touch();
     if (ctx->IsCancelled()) {
       return rpc.Done(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled"));
@@ -566,9 +630,9 @@ grpc::Status KinetriServiceImpl::DeleteSession(
   return rpc.Done(ToGrpc(st));
 }
 
-grpc::Status KinetriServiceImpl::StreamSteps(
+grpc::Status KinetriServiceImpl::StreamStepsFromBytes(
     grpc::ServerContext* ctx,
-    grpc::ServerReaderWriter<v1::StepResponse, v1::StepRequest>* stream) {
+    grpc::ServerReaderWriter<v1::StepResponse, grpc::ByteBuffer>* stream) {
   RpcScope rpc(metrics_, "StreamSteps", "bidi_stream");
   auto tenant = Caller(*ctx);
   if (!tenant.ok()) return rpc.Done(ToGrpc(tenant.status()));
@@ -576,7 +640,17 @@ grpc::Status KinetriServiceImpl::StreamSteps(
   StepAssembler assembler;
   v1::StepRequest req;
   IdleWatchdog::Registration idle(watchdog_, ctx);
-  while (stream->Read(&req)) {
+  MessageReader<v1::StepRequest,
+                grpc::ServerReaderWriter<v1::StepResponse, grpc::ByteBuffer>>
+      messages(stream);
+  while (true) {
+    absl::StatusOr<bool> got = messages.Read(&req);
+    if (!got.ok()) {
+      // Corrupt bytes: the open step (if any) is not applied; steps already
+      // acknowledged stay.
+      return rpc.Done(ToGrpc(got.status()));
+    }
+    if (!*got) break;
     idle.Touch();
     if (ctx->IsCancelled()) {
       return rpc.Done(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled"));
@@ -671,9 +745,9 @@ grpc::Status KinetriServiceImpl::Query(
   }));
 }
 
-grpc::Status KinetriServiceImpl::StreamQuery(
+grpc::Status KinetriServiceImpl::StreamQueryFromBytes(
     grpc::ServerContext* ctx,
-    grpc::ServerReaderWriter<v1::QueryResponse, v1::QueryRequest>* stream) {
+    grpc::ServerReaderWriter<v1::QueryResponse, grpc::ByteBuffer>* stream) {
   RpcScope rpc(metrics_, "StreamQuery", "bidi_stream");
   auto tenant = Caller(*ctx);
   if (!tenant.ok()) return rpc.Done(ToGrpc(tenant.status()));
@@ -682,7 +756,12 @@ grpc::Status KinetriServiceImpl::StreamQuery(
   // --max_points and reserved from the memory budget as they arrive.
   v1::QueryRequest req, more;
   IdleWatchdog::Registration idle(watchdog_, ctx);
-  if (!stream->Read(&req)) {
+  MessageReader<v1::QueryRequest,
+                grpc::ServerReaderWriter<v1::QueryResponse, grpc::ByteBuffer>>
+      messages(stream);
+  absl::StatusOr<bool> got = messages.Read(&req);
+  if (!got.ok()) return rpc.Done(ToGrpc(got.status()));
+  if (!*got) {
     return rpc.Done(grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                                  "StreamQuery: no query was sent"));
   }
@@ -717,7 +796,9 @@ grpc::Status KinetriServiceImpl::StreamQuery(
       reserved += step;
       held.push_back(*std::move(r));
     }
-    if (!stream->Read(&more)) break;
+    got = messages.Read(&more);
+    if (!got.ok()) return rpc.Done(ToGrpc(got.status()));
+    if (!*got) break;
     idle.Touch();
     if (ctx->IsCancelled()) {
       return rpc.Done(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled"));

@@ -30,12 +30,7 @@ class KinetriServiceImpl final : public v1::KinetriService::Service {
   // off.
   KinetriServiceImpl(SessionRegistry* registry, Metrics* metrics,
                      IdleWatchdog* watchdog, MemoryBudget* budget,
-                     const TokenAuth* auth = nullptr)
-      : registry_(registry),
-        metrics_(metrics),
-        watchdog_(watchdog),
-        budget_(budget),
-        auth_(auth) {}
+                     const TokenAuth* auth = nullptr);
 
   // Durable sessions: restores every session in `store` (before the server
   // starts serving) and persists new sessions and steps there from now on.
@@ -55,10 +50,12 @@ class KinetriServiceImpl final : public v1::KinetriService::Service {
   // reports failures on stderr (their journals stay valid).
   size_t CheckpointAll();
 
-  grpc::Status CreateSession(
-      grpc::ServerContext* ctx,
-      grpc::ServerReader<v1::CreateSessionRequest>* reader,
-      v1::Session* response) override;
+  // The streaming RPCs read their requests as bytes (server/message_reader.h:
+  // a corrupt message is an error, never a clean end of the stream); the
+  // constructor registers these in place of the generated typed handlers.
+  grpc::Status CreateSessionFromBytes(
+      grpc::ServerContext* ctx, grpc::ServerReader<grpc::ByteBuffer>* reader,
+      v1::Session* response);
   grpc::Status GetSession(grpc::ServerContext* ctx,
                           const v1::GetSessionRequest* request,
                           v1::Session* response) override;
@@ -68,16 +65,14 @@ class KinetriServiceImpl final : public v1::KinetriService::Service {
   grpc::Status DeleteSession(grpc::ServerContext* ctx,
                              const v1::DeleteSessionRequest* request,
                              google::protobuf::Empty* response) override;
-  grpc::Status StreamSteps(
+  grpc::Status StreamStepsFromBytes(
       grpc::ServerContext* ctx,
-      grpc::ServerReaderWriter<v1::StepResponse, v1::StepRequest>* stream)
-      override;
+      grpc::ServerReaderWriter<v1::StepResponse, grpc::ByteBuffer>* stream);
   grpc::Status Query(grpc::ServerContext* ctx, const v1::QueryRequest* request,
                      grpc::ServerWriter<v1::QueryResponse>* writer) override;
-  grpc::Status StreamQuery(
+  grpc::Status StreamQueryFromBytes(
       grpc::ServerContext* ctx,
-      grpc::ServerReaderWriter<v1::QueryResponse, v1::QueryRequest>* stream)
-      override;
+      grpc::ServerReaderWriter<v1::QueryResponse, grpc::ByteBuffer>* stream);
   grpc::Status ExportTriangulation(
       grpc::ServerContext* ctx, const v1::ExportTriangulationRequest* request,
       grpc::ServerWriter<v1::ExportTriangulationResponse>* writer) override;

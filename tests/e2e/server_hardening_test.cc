@@ -319,31 +319,81 @@ grpc::Status SendRawStream(const std::string& target, const std::string& method,
   return testing::SendRaw(stub, method, messages, 10);
 }
 
-// Defect 9: corrupt protobuf bytes on a stream. gRPC's synchronous API
-// reports an unparsable message like the end of the stream, so the handlers
-// treat an end that leaves work half-done as an error: inside a step (the
-// step is not applied) or inside a creation. (A corrupt message exactly at
-// a step boundary still reads as a clean end; see docs/RELIABILITY.md.)
+// Defect 9: corrupt protobuf bytes on a stream ended it with OK. The
+// streaming handlers read bytes and parse them themselves
+// (server/message_reader.h), so corrupt bytes are INVALID_ARGUMENT wherever
+// they come: inside a step (the step is not applied), exactly at a step
+// boundary (the acknowledged steps stay), after a query's first message
+// (no answer from partial targets), and as a creation's last message (no
+// session).
 TEST_F(HardeningTest, CorruptStreamBytesAreAnError) {
   auto s = client_->CreateSession({0, 0, 1, 0, 0, 1, 1, 1},
                                   v1::SessionOptions(), "corrupt");
   ASSERT_TRUE(s.ok()) << s.status();
   // Field 1 (session), length-delimited, announcing 2^35 bytes: unparsable.
   const std::string garbage("\x0a\xff\xff\xff\xff\x7f\x01\x02", 8);
+  const std::string steps_method = "/kinetri.v1.KinetriService/StreamSteps";
   v1::StepRequest first;
   first.set_session(s->name());
   first.set_step(1);
   for (int i = 0; i < 4; ++i) first.add_xy(0.01);  // 2 of 4 points, no end
-  const grpc::Status steps =
-      SendRawStream(server_->target(), "/kinetri.v1.KinetriService/StreamSteps",
-                    {first.SerializeAsString(), garbage});
-  EXPECT_EQ(steps.error_code(), grpc::StatusCode::INVALID_ARGUMENT)
-      << steps.error_message();
+  grpc::Status st = SendRawStream(server_->target(), steps_method,
+                                  {first.SerializeAsString(), garbage});
+  EXPECT_EQ(st.error_code(), grpc::StatusCode::INVALID_ARGUMENT)
+      << st.error_message();
   EXPECT_EQ(client_->GetSession(s->name())->step(), 0u);
-  const grpc::Status create = SendRawStream(
-      server_->target(), "/kinetri.v1.KinetriService/CreateSession", {garbage});
-  EXPECT_EQ(create.error_code(), grpc::StatusCode::INVALID_ARGUMENT)
-      << create.error_message();
+
+  // At a step boundary: step 1 is whole and acknowledged, then garbage.
+  v1::StepRequest whole;
+  whole.set_session(s->name());
+  whole.set_step(1);
+  for (int i = 0; i < 8; ++i) whole.add_xy(0.01);
+  whole.set_end_of_step(true);
+  st = SendRawStream(server_->target(), steps_method,
+                     {whole.SerializeAsString(), garbage});
+  EXPECT_EQ(st.error_code(), grpc::StatusCode::INVALID_ARGUMENT)
+      << st.error_message();
+  EXPECT_NE(st.error_message().find("message 2 of the stream"),
+            std::string::npos)
+      << st.error_message();
+  EXPECT_EQ(client_->GetSession(s->name())->step(), 1u);
+  // The same step without the garbage ends cleanly.
+  whole.set_step(2);
+  st = SendRawStream(server_->target(), steps_method,
+                     {whole.SerializeAsString()});
+  EXPECT_TRUE(st.ok()) << st.error_message();
+  EXPECT_EQ(client_->GetSession(s->name())->step(), 2u);
+
+  // A streamed query whose second message is corrupt: no answer.
+  v1::QueryRequest q;
+  q.set_session(s->name());
+  q.set_kind(v1::QUERY_KIND_NEAREST);
+  q.mutable_positions()->add_xy(0.5);
+  q.mutable_positions()->add_xy(0.5);
+  st = SendRawStream(server_->target(),
+                     "/kinetri.v1.KinetriService/StreamQuery",
+                     {q.SerializeAsString(), garbage});
+  EXPECT_EQ(st.error_code(), grpc::StatusCode::INVALID_ARGUMENT)
+      << st.error_message();
+
+  // Creation: garbage as the header, and as the last message.
+  st = SendRawStream(server_->target(),
+                     "/kinetri.v1.KinetriService/CreateSession", {garbage});
+  EXPECT_EQ(st.error_code(), grpc::StatusCode::INVALID_ARGUMENT)
+      << st.error_message();
+  v1::CreateSessionRequest header, points;
+  header.mutable_header()->set_session_id("corrupt-last");
+  header.mutable_header()->set_point_count(3);
+  for (double v : {0.0, 0.0, 1.0, 0.0, 0.0, 1.0}) {
+    points.mutable_points()->add_xy(v);
+  }
+  st = SendRawStream(
+      server_->target(), "/kinetri.v1.KinetriService/CreateSession",
+      {header.SerializeAsString(), points.SerializeAsString(), garbage});
+  EXPECT_EQ(st.error_code(), grpc::StatusCode::INVALID_ARGUMENT)
+      << st.error_message();
+  EXPECT_EQ(client_->GetSession("sessions/corrupt-last").status().code(),
+            absl::StatusCode::kNotFound);
 }
 
 // Defect 6: a step stream that never sends end_of_step accepted chunk after
