@@ -185,12 +185,17 @@ TEST_F(HardeningTest, StepsAreNotStarvedByQueries) {
   const size_t n = 50000;
   auto s = client_->CreateSession(UniformXY(n, 3), v1::SessionOptions(), "st");
   ASSERT_TRUE(s.ok()) << s.status();
-  auto idle_steps = client_->OpenSteps(s->name());
-  ASSERT_TRUE(idle_steps.ok());
+  auto steps = client_->OpenSteps(s->name());
+  ASSERT_TRUE(steps.ok());
+  auto percentile = [](std::vector<double> v, double p) {
+    std::sort(v.begin(), v.end());
+    return v[std::min(v.size() - 1, static_cast<size_t>(p * v.size()))];
+  };
+  constexpr int kSteps = 200;
   std::vector<double> idle_ms;
-  for (int i = 0; i < 5; ++i) {
+  for (int i = 0; i < kSteps; ++i) {
     const auto t0 = Clock::now();
-    ASSERT_TRUE((*idle_steps)->MoveBy({7}, {1e-4, 0}).ok());
+    ASSERT_TRUE((*steps)->MoveBy({7}, {1e-4, 0}).ok());
     idle_ms.push_back(MsSince(t0));
   }
   v1::QueryRequest knn8;  // k = 8 for every point
@@ -203,43 +208,43 @@ TEST_F(HardeningTest, StepsAreNotStarvedByQueries) {
   const double alone_ms = MsSince(alone_t0);
   std::atomic<bool> stop{false};
   std::atomic<int> queries{0};
-  double query_ms_max = 0;
-  std::mutex mu;
   std::vector<std::thread> readers;
-  for (int r = 0; r < 4; ++r) {
+  for (int r = 0; r < 8; ++r) {
     readers.emplace_back([&] {
       Client c(server_->target());
       while (!stop) {
-        const auto t0 = Clock::now();
         if (c.Query(knn8).ok()) ++queries;
-        std::lock_guard<std::mutex> lock(mu);
-        query_ms_max = std::max(query_ms_max, MsSince(t0));
       }
     });
   }
   std::this_thread::sleep_for(std::chrono::milliseconds(300));
   std::vector<double> busy_ms;
-  for (int i = 0; i < 10; ++i) {
+  for (int i = 0; i < kSteps; ++i) {
     const auto t0 = Clock::now();
-    ASSERT_TRUE((*idle_steps)->MoveBy({7}, {1e-4, 0}).ok());
+    ASSERT_TRUE((*steps)->MoveBy({7}, {1e-4, 0}).ok());
     busy_ms.push_back(MsSince(t0));
   }
+  const int during = queries.load();
   stop = true;
   for (auto& t : readers) t.join();
-  std::sort(idle_ms.begin(), idle_ms.end());
-  std::sort(busy_ms.begin(), busy_ms.end());
+  const double idle_p50 = percentile(idle_ms, 0.5);
+  const double idle_p99 = percentile(idle_ms, 0.99);
+  const double busy_p50 = percentile(busy_ms, 0.5);
+  const double busy_p99 = percentile(busy_ms, 0.99);
   std::printf(
-      "1-point step: idle median %.1f ms; under 4 query loops "
-      "median %.1f ms, max %.1f ms (%d queries, longest %.0f ms, "
-      "one alone %.0f ms)\n",
-      idle_ms[2], busy_ms[5], busy_ms.back(), queries.load(), query_ms_max,
-      alone_ms);
-  EXPECT_GT(queries.load(), 0);
+      "1-point step on %zu points, %d steps: idle p50 %.2f ms p99 %.2f ms; "
+      "under 8 query loops p50 %.2f ms p99 %.2f ms max %.2f ms "
+      "(%d queries meanwhile, one alone %.0f ms)\n",
+      n, kSteps, idle_p50, idle_p99, busy_p50, busy_p99,
+      percentile(busy_ms, 1.0), during, alone_ms);
+  EXPECT_GT(during, 0);
   // Queries read a snapshot: a step never waits for one (it copies the
-  // triangulation when readers hold it), so it takes far less than a
-  // single query even while four run.
-  EXPECT_LT(busy_ms[5], alone_ms);
-  EXPECT_LT(busy_ms.back(), 3 * alone_ms + 50);
+  // triangulation while readers hold it), so half the steps take less than
+  // a tenth of one query, and the slowest 1 % less than about one query:
+  // what remains is the CPU the eight loops, their clients and the step
+  // share (docs/RELIABILITY.md).
+  EXPECT_LT(busy_p50, alone_ms / 10 + 1);
+  EXPECT_LT(busy_p99, 2 * alone_ms + 20);
 }
 
 // A query answers from the step it started on, every chunk of it, even when
