@@ -730,6 +730,7 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
   t0 = std::chrono::steady_clock::now();
 
   if (Cancelled()) return stop(false);
+  stats->mutated = true;
   // 3. Fix.
   if (!DenseFix(mesh, moved, pol, stats, reason)) {
     stats->fix_seconds += SecondsSince(t0);

@@ -73,8 +73,11 @@ struct RegionStepStats {
   double fix_seconds = 0.0;
   double legalize_seconds = 0.0;
   double held_seconds = 0.0;
-  // The step stopped because its cancellation token fired; `mutated`: the
-  // mesh had been changed already (the caller must restore it).
+  // The step stopped because its cancellation token fired. `mutated`: the
+  // mesh may have been changed already (the caller must restore it), set
+  // once fixing begins, whether the step then stops, fails or succeeds; a
+  // step refused before that (the cost model chose a rebuild) leaves the
+  // mesh untouched.
   bool cancelled = false;
   bool mutated = false;
 };

@@ -300,41 +300,50 @@ TriangulationView Triangulation::query_view() const {
 
 bool Triangulation::Rebuild(const std::vector<Vec2>& positions_by_ext,
                             const CancelToken* cancel) {
+  // Built aside and swapped in at the end, so that a cancelled rebuild
+  // leaves the previous triangulation as it was.
   const uint32_t n = static_cast<uint32_t>(positions_by_ext.size());
-  ext_of_int_ = HilbertOrder(positions_by_ext);
-  int_of_ext_.assign(n, 0);
-  pos_.resize(n);
+  std::vector<uint32_t> ext_of_int = HilbertOrder(positions_by_ext);
+  std::vector<uint32_t> int_of_ext(n, 0);
+  std::vector<Vec2> pos(n);
   for (uint32_t i = 0; i < n; ++i) {
-    int_of_ext_[ext_of_int_[i]] = i;
-    pos_[i] = positions_by_ext[ext_of_int_[i]];
+    int_of_ext[ext_of_int[i]] = i;
+    pos[i] = positions_by_ext[ext_of_int[i]];
   }
   // Group coincident points: lexicographic sort with id as tie-break.
   std::vector<uint32_t> by_pos(n);
   std::iota(by_pos.begin(), by_pos.end(), 0u);
   tbb::parallel_sort(by_pos.begin(), by_pos.end(), [&](uint32_t a, uint32_t b) {
-    if (pos_[a] != pos_[b]) return LexLess(pos_[a], pos_[b]);
+    if (pos[a] != pos[b]) return LexLess(pos[a], pos[b]);
     return a < b;
   });
-  rep_.assign(n, kNoVertex);
-  dup_next_.assign(n, kNoVertex);
-  has_duplicates_ = false;
+  std::vector<uint32_t> rep(n, kNoVertex), dup_next(n, kNoVertex);
+  bool has_duplicates = false;
   for (uint32_t k = 0; k < n;) {
     uint32_t j = k + 1;
-    while (j < n && pos_[by_pos[j]] == pos_[by_pos[k]]) ++j;
+    while (j < n && pos[by_pos[j]] == pos[by_pos[k]]) ++j;
     for (uint32_t m = k; m < j; ++m) {
-      rep_[by_pos[m]] = by_pos[k];
-      if (m + 1 < j) dup_next_[by_pos[m]] = by_pos[m + 1];
+      rep[by_pos[m]] = by_pos[k];
+      if (m + 1 < j) dup_next[by_pos[m]] = by_pos[m + 1];
     }
-    if (j - k > 1) has_duplicates_ = true;
+    if (j - k > 1) has_duplicates = true;
     k = j;
   }
-  sites_.clear();
+  std::vector<uint32_t> sites;
   for (uint32_t i = 0; i < n; ++i) {
-    if (rep_[i] == i) sites_.push_back(i);
+    if (rep[i] == i) sites.push_back(i);
   }
   bool cancelled = false;
-  mesh_ = BuildDelaunayWithCgal(pos_, sites_, cancel, &cancelled);
+  Mesh mesh = BuildDelaunayWithCgal(pos, sites, cancel, &cancelled);
   if (cancelled) return false;
+  ext_of_int_ = std::move(ext_of_int);
+  int_of_ext_ = std::move(int_of_ext);
+  pos_ = std::move(pos);
+  rep_ = std::move(rep);
+  dup_next_ = std::move(dup_next);
+  has_duplicates_ = has_duplicates;
+  sites_ = std::move(sites);
+  mesh_ = std::move(mesh);
   MeshChangedOnHost();
   if (!mesh_.empty()) mesh_.SortTrianglesByVertex();
   removal_touched_.clear();
@@ -959,7 +968,8 @@ bool Triangulation::FinishLocalStep(std::vector<Vec2>& next,
 bool Triangulation::RegionUpdate(std::vector<Vec2>& next,
                                  const std::vector<uint32_t>& moved_points,
                                  const CancelToken* cancel, StepReport* report,
-                                 std::string* reason, int* cancelled) {
+                                 std::string* reason, int* cancelled,
+                                 bool* untouched) {
   const uint32_t n = size();
   std::vector<uint32_t> reinsert = DetachPartingPoints(next);
   const auto& ve = mesh_.vertex_edge();
@@ -990,7 +1000,10 @@ bool Triangulation::RegionUpdate(std::vector<Vec2>& next,
   report->fix_seconds += stats.fix_seconds;
   report->legalize_seconds += stats.legalize_seconds;
   report->held_seconds += stats.held_seconds;
-  if (!ok) return false;
+  if (!ok) {
+    if (untouched != nullptr) *untouched = !stats.mutated && reinsert.empty();
+    return false;
+  }
   reinsert.insert(reinsert.end(), removed.begin(), removed.end());
   return FinishLocalStep(next, std::move(reinsert), hints, report, reason);
 }
@@ -1315,12 +1328,16 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
     Run([&] {
       std::string reason;
       bool ok = false;
+      // On failure: the attempt changed nothing, so the rebuild that
+      // follows can stop on `cancel` and leave the previous step.
+      bool untouched = false;
       if (mesh_.empty()) {
         reason = "fewer than two dimensions (line mode)";
+        untouched = true;
       } else {
         ok = options_.executor == Executor::kRegions
                  ? RegionUpdate(next, moved, cancel, &report, &reason,
-                                &cancelled)
+                                &cancelled, &untouched)
                  : LocalUpdate(next, moved, cancel, &report, &reason,
                                &cancelled);
       }
@@ -1346,7 +1363,11 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
       } else {
         std::vector<Vec2> by_ext(n);
         for (uint32_t i = 0; i < n; ++i) by_ext[ext_of_int_[i]] = next[i];
-        Rebuild(by_ext);
+        if (!Rebuild(by_ext, untouched ? cancel : nullptr)) {
+          --steps_;  // stopped: the previous step stays, untouched
+          cancelled = 1;
+          return;
+        }
         report.path = UpdatePath::kRebuilt;
         report.fallback_reason = reason;
         report.renumbered = true;

@@ -213,8 +213,8 @@ class Triangulation {
   Triangulation() = default;
   void RunImpl(const std::function<void()>& fn) const;
 
-  // Full construction from positions in external order; false when
-  // `cancel` fired (the object is then unusable: Create discards it).
+  // Full construction from positions in external order. All or nothing:
+  // false when `cancel` fired, and then nothing of the object changed.
   bool Rebuild(const std::vector<Vec2>& positions_by_ext,
                const CancelToken* cancel = nullptr);
   // Local update attempt from pos_ to `to`; false if it must fall back.
@@ -253,10 +253,13 @@ class Triangulation {
   // Kinetic path of the region executor; false (with reason): rebuild.
   // *cancelled: 0 ran to the end, 1 stopped by `cancel` with nothing
   // changed, 2 stopped after changing the mesh (restore it).
+  // *untouched (optional): on failure, the attempt changed nothing (the
+  // cost model chose a rebuild before any flip).
   bool RegionUpdate(std::vector<Vec2>& next,
                     const std::vector<uint32_t>& moved_points,
                     const CancelToken* cancel, StepReport* report,
-                    std::string* reason, int* cancelled);
+                    std::string* reason, int* cancelled,
+                    bool* untouched = nullptr);
   // Kinetic path of the round executor; false (with reason): rebuild.
   bool LocalUpdate(std::vector<Vec2>& next,
                    const std::vector<uint32_t>& moved_points,

@@ -409,6 +409,74 @@ TEST(Kinetic, CancelledStepLeavesThePreviousStep) {
   EXPECT_EQ(t->steps(), 1u);
 }
 
+// A step that the cost model turns into a rebuild can be stopped inside the
+// rebuild (CGAL builds in batches of 32K insertions with the token polled
+// between them; the new triangulation is built aside): the previous step
+// stays, exactly. (The round executor's fallback rebuilds follow a local
+// attempt that changed the mesh, so they run to the end.)
+TEST(Kinetic, CancelledRebuildLeavesThePreviousStep) {
+  const size_t n = 70000;
+  auto pts = testing::UniformPoints(n, 131);
+  auto t = Triangulation::Create(pts, testing::ExecutorOptions());
+  ASSERT_TRUE(t.ok());
+  std::mt19937_64 rng(132);
+  const double spacing = 1.0 / std::sqrt(double(n));
+  const DisplacementBatch step = Brownian(n, 3 * spacing, rng);
+  const auto before = t->Positions();
+  const auto before_edges = EdgesAsPositions(*t);
+  // How often a whole step polls, and when: the last polls are the
+  // rebuild's, and no stretch of the step (most of it is the rebuild) goes
+  // without one.
+  int total = 0;
+  {
+    auto copy = t->Clone();
+    using Clock = CancelToken::Clock;
+    std::vector<Clock::time_point> at;
+    const Clock::time_point start = Clock::now();
+    CancelToken counting(
+        [&] {
+          at.push_back(Clock::now());
+          return ++total < 0;
+        },
+        Clock::time_point::max(), Clock::duration::zero());
+    auto r = copy.ApplyDisplacements(step, &counting);
+    const Clock::time_point end = Clock::now();
+    ASSERT_TRUE(r.ok()) << r.status();
+    if (!testing::kRegionExecutor) GTEST_SKIP() << "round executor";
+    ASSERT_EQ(r->path, UpdatePath::kRebuilt) << "the cost model chose local";
+    at.push_back(end);
+    Clock::duration longest = at.front() - start;
+    for (size_t i = 1; i < at.size(); ++i) {
+      longest = std::max(longest, at[i] - at[i - 1]);
+    }
+    // CGAL inserts 32K points between polls, a third of the points here.
+    EXPECT_LT(longest, (end - start) / 2)
+        << "a stretch of the step polls no token: "
+        << std::chrono::duration<double, std::milli>(longest).count()
+        << " ms of "
+        << std::chrono::duration<double, std::milli>(end - start).count();
+  }
+  for (int back = 1; back <= 4; ++back) {
+    int polls = 0;
+    CancelToken token([&] { return ++polls >= total - back; },
+                      CancelToken::Clock::time_point::max(),
+                      CancelToken::Clock::duration::zero());
+    auto r = t->ApplyDisplacements(step, &token);
+    ASSERT_EQ(r.status().code(), absl::StatusCode::kCancelled)
+        << "fired " << back << " polls before the end: " << r.status();
+    ASSERT_EQ(t->steps(), 0u);
+    ASSERT_EQ(t->Positions(), before);
+    ASSERT_TRUE(t->Validate().ok());
+    ASSERT_EQ(EdgesAsPositions(*t), before_edges);
+  }
+  auto r = t->ApplyDisplacements(step);
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_EQ(r->path, UpdatePath::kRebuilt);
+  EXPECT_EQ(t->steps(), 1u);
+  EXPECT_TRUE(t->Validate().ok());
+  EXPECT_EQ(EdgesAsPositions(*t), CgalDelaunayEdges(t->Positions()));
+}
+
 // Regression (issue 13): two points that move onto the same empty position in
 // one step made re-insertion fail and forced a full rebuild; either move
 // alone was local.
