@@ -28,7 +28,9 @@ class CancelToken {
   CancelToken() = default;
   // Fires when `cancelled` returns true or `deadline` has passed (either may
   // be omitted: an empty function, or Clock::time_point::max()).
-  // `check_interval`: how often at most `cancelled` runs (0: at every poll).
+  // `check_interval`: how often at most `cancelled` runs (0: at every poll,
+  // possibly from several threads at once: `cancelled` must be
+  // thread-safe).
   explicit CancelToken(
       std::function<bool()> cancelled,
       Clock::time_point deadline = Clock::time_point::max(),
@@ -50,13 +52,18 @@ class CancelToken {
     if (deadline_ != Clock::time_point::max() && now >= deadline_) {
       why = kDeadline;
     } else if (cancelled_) {
-      const int64_t t = now.time_since_epoch().count();
-      int64_t next = next_check_.load(std::memory_order_relaxed);
-      if (t >= next &&
-          next_check_.compare_exchange_strong(next, t + check_interval_.count(),
-                                              std::memory_order_relaxed) &&
-          cancelled_()) {
-        why = kCancelled;
+      if (check_interval_ == Clock::duration::zero()) {
+        // At every poll, from every thread (tests count the polls).
+        if (cancelled_()) why = kCancelled;
+      } else {
+        const int64_t t = now.time_since_epoch().count();
+        int64_t next = next_check_.load(std::memory_order_relaxed);
+        if (t >= next &&
+            next_check_.compare_exchange_strong(
+                next, t + check_interval_.count(), std::memory_order_relaxed) &&
+            cancelled_()) {
+          why = kCancelled;
+        }
       }
     }
     if (why == kNo) return false;

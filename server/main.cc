@@ -398,9 +398,26 @@ int main(int argc, char** argv) {
   }
   std::this_thread::sleep_for(
       std::chrono::duration<double>(absl::GetFlag(FLAGS_drain_delay_seconds)));
-  server->Shutdown(
-      std::chrono::system_clock::now() +
-      std::chrono::seconds(absl::GetFlag(FLAGS_shutdown_grace_seconds)));
+  {
+    // Once the grace has passed, calls still running stop their work too
+    // (gRPC cancels them, but a handler computing learns it only at its
+    // next read or write).
+    const auto grace_end =
+        std::chrono::steady_clock::now() +
+        std::chrono::seconds(absl::GetFlag(FLAGS_shutdown_grace_seconds));
+    std::atomic<bool> shut{false};
+    std::thread stopper([&] {
+      while (!shut && std::chrono::steady_clock::now() < grace_end) {
+        std::this_thread::sleep_for(std::chrono::milliseconds(20));
+      }
+      if (!shut) service.StopAllWork();
+    });
+    server->Shutdown(
+        std::chrono::system_clock::now() +
+        std::chrono::seconds(absl::GetFlag(FLAGS_shutdown_grace_seconds)));
+    shut = true;
+    stopper.join();
+  }
   server->Wait();
   if (store) {
     // Calls are over: snapshot every session whose journal has steps, so

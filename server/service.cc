@@ -493,7 +493,8 @@ grpc::Status KinetriServiceImpl::CreateSessionFromBytes(
   }
   // A client that cancels (or whose deadline passes) while the
   // triangulation is built stops the build within tens of milliseconds.
-  const core::CancelToken cancel([ctx] { return ctx->IsCancelled(); },
+  const core::CancelToken cancel(
+      [this, ctx] { return stop_all_.load() || ctx->IsCancelled(); },
                                  ToSteadyDeadline(ctx->deadline()));
   auto tri = core::Triangulation::Create(points, opt, &cancel);
   if (!tri.ok()) return rpc.Done(ToGrpc(tri.status()));
@@ -699,7 +700,8 @@ grpc::Status KinetriServiceImpl::StreamStepsFromBytes(
     v1::StepResponse resp;
     // A client that cancels (or whose deadline passes) mid-step stops it;
     // the session stays at its previous step.
-    const core::CancelToken cancel([ctx] { return ctx->IsCancelled(); },
+    const core::CancelToken cancel(
+      [this, ctx] { return stop_all_.load() || ctx->IsCancelled(); },
                                    ToSteadyDeadline(ctx->deadline()));
     bool replayed = false;
     auto report = session->ApplyStep(
@@ -884,7 +886,8 @@ grpc::Status KinetriServiceImpl::RunQuery(
   }
   // The query stops within milliseconds once the client cancels or its
   // deadline passes (polled per row and inside long rows).
-  const core::CancelToken cancel([ctx] { return ctx->IsCancelled(); },
+  const core::CancelToken cancel(
+      [this, ctx] { return stop_all_.load() || ctx->IsCancelled(); },
                                  ToSteadyDeadline(ctx->deadline()));
   core::QueryLimits limits;
   limits.max_total_results = session.max_query_results();

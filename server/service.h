@@ -49,6 +49,12 @@ class KinetriServiceImpl final : public v1::KinetriService::Service {
   // (after the drain at shutdown); returns how many were written and
   // reports failures on stderr (their journals stay valid).
   size_t CheckpointAll();
+  // Stops the work of every call in progress (their cancellation tokens
+  // fire), for a shutdown whose grace has passed: gRPC's synchronous
+  // handlers see a server-side cancellation only at their next read or
+  // write, which a query computing a block of rows may not reach for
+  // seconds.
+  void StopAllWork() { stop_all_ = true; }
 
   // The streaming RPCs read their requests as bytes (server/message_reader.h:
   // a corrupt message is an error, never a clean end of the stream); the
@@ -96,6 +102,7 @@ class KinetriServiceImpl final : public v1::KinetriService::Service {
   IdleWatchdog* watchdog_;
   MemoryBudget* budget_;
   const TokenAuth* auth_;
+  std::atomic<bool> stop_all_{false};
   SessionStore* store_ = nullptr;
   // Durable creations one at a time: the existence check, the first
   // snapshot and the registration must not interleave for one name.

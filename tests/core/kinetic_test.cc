@@ -1,10 +1,12 @@
 // Motion sequences: after every step the mesh is valid and equals CGAL's DT.
 #include <gtest/gtest.h>
 
+#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <functional>
+#include <mutex>
 #include <random>
 #include <string>
 
@@ -381,7 +383,7 @@ TEST(Kinetic, CancelledStepLeavesThePreviousStep) {
   const auto before_edges = CgalDelaunayEdges(before);
   int fired_at = -1;
   for (int k = 0; k < 100000; ++k) {
-    int polls = 0;
+    std::atomic<int> polls{0};
     CancelToken token([&] { return ++polls > k; },
                       CancelToken::Clock::time_point::max(),
                       CancelToken::Clock::duration::zero());
@@ -427,14 +429,16 @@ TEST(Kinetic, CancelledRebuildLeavesThePreviousStep) {
   // How often a whole step polls, and when: the last polls are the
   // rebuild's, and no stretch of the step (most of it is the rebuild) goes
   // without one.
-  int total = 0;
+  std::atomic<int> total{0};
   {
     auto copy = t->Clone();
     using Clock = CancelToken::Clock;
+    std::mutex mu;
     std::vector<Clock::time_point> at;
     const Clock::time_point start = Clock::now();
     CancelToken counting(
         [&] {
+          std::lock_guard<std::mutex> lock(mu);
           at.push_back(Clock::now());
           return ++total < 0;
         },
@@ -457,7 +461,7 @@ TEST(Kinetic, CancelledRebuildLeavesThePreviousStep) {
         << std::chrono::duration<double, std::milli>(end - start).count();
   }
   for (int back = 1; back <= 4; ++back) {
-    int polls = 0;
+    std::atomic<int> polls{0};
     CancelToken token([&] { return ++polls >= total - back; },
                       CancelToken::Clock::time_point::max(),
                       CancelToken::Clock::duration::zero());
