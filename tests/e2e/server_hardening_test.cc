@@ -548,7 +548,10 @@ TEST(HardeningMemory, DeleteReturnsMemory) {
       "session, %.0f MB after deleting it\n",
       before, held, after);
   EXPECT_GT(held - before, 50.0);
-  EXPECT_LT(after - before, 0.25 * (held - before));
+  // Without trimming, `after` stays near `held`. With it, 8-9 MB stay
+  // when the machine is quiet and up to 27 MB (of 105) were seen while
+  // ctest ran other tests beside it (allocator arenas of other threads).
+  EXPECT_LT(after - before, 0.4 * (held - before));
 }
 
 // Defect 9: SIGTERM during a long query waited for the query (13-19 s with
