@@ -495,7 +495,7 @@ grpc::Status KinetriServiceImpl::CreateSessionFromBytes(
   // triangulation is built stops the build within tens of milliseconds.
   const core::CancelToken cancel(
       [this, ctx] { return stop_all_.load() || ctx->IsCancelled(); },
-                                 ToSteadyDeadline(ctx->deadline()));
+      ToSteadyDeadline(ctx->deadline()));
   auto tri = core::Triangulation::Create(points, opt, &cancel);
   if (!tri.ok()) return rpc.Done(ToGrpc(tri.status()));
   const uint64_t max_results =
@@ -701,8 +701,8 @@ grpc::Status KinetriServiceImpl::StreamStepsFromBytes(
     // A client that cancels (or whose deadline passes) mid-step stops it;
     // the session stays at its previous step.
     const core::CancelToken cancel(
-      [this, ctx] { return stop_all_.load() || ctx->IsCancelled(); },
-                                   ToSteadyDeadline(ctx->deadline()));
+        [this, ctx] { return stop_all_.load() || ctx->IsCancelled(); },
+        ToSteadyDeadline(ctx->deadline()));
     bool replayed = false;
     auto report = session->ApplyStep(
         step, std::move(batch->batch),
@@ -888,7 +888,7 @@ grpc::Status KinetriServiceImpl::RunQuery(
   // deadline passes (polled per row and inside long rows).
   const core::CancelToken cancel(
       [this, ctx] { return stop_all_.load() || ctx->IsCancelled(); },
-                                 ToSteadyDeadline(ctx->deadline()));
+      ToSteadyDeadline(ctx->deadline()));
   core::QueryLimits limits;
   limits.max_total_results = session.max_query_results();
   limits.cancel = &cancel;

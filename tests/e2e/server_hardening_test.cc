@@ -375,9 +375,9 @@ TEST_F(HardeningTest, CorruptStreamBytesAreAnError) {
   q.set_kind(v1::QUERY_KIND_NEAREST);
   q.mutable_positions()->add_xy(0.5);
   q.mutable_positions()->add_xy(0.5);
-  st = SendRawStream(server_->target(),
-                     "/kinetri.v1.KinetriService/StreamQuery",
-                     {q.SerializeAsString(), garbage});
+  st =
+      SendRawStream(server_->target(), "/kinetri.v1.KinetriService/StreamQuery",
+                    {q.SerializeAsString(), garbage});
   EXPECT_EQ(st.error_code(), grpc::StatusCode::INVALID_ARGUMENT)
       << st.error_message();
 
