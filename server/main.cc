@@ -22,6 +22,7 @@
 #include "core/program_flags.h"
 #include "server/auth.h"
 #include "server/metrics.h"
+#include "server/query_pool.h"
 #include "server/reflection_v1.h"
 #include "server/service.h"
 #include "server/session_registry.h"
@@ -43,6 +44,12 @@ ABSL_FLAG(int, max_message_mb, 4,
           "largest gRPC message accepted, MiB (clients chunk to fit)");
 ABSL_FLAG(int, threads, 0,
           "worker threads per session on the CPU backend (0: all cores)");
+ABSL_FLAG(int, query_threads, 0,
+          "threads that compute query rows, for all sessions (0: all "
+          "cores); more queries wait in line for one");
+ABSL_FLAG(int, query_nice, 10,
+          "how much the query threads' nice value is raised (0-19): a step "
+          "takes a core from queries as soon as it wakes");
 ABSL_FLAG(std::string, tls_cert, "",
           "PEM certificate chain of the gRPC port (TLS on when set, with "
           "--tls_key); re-read when the files change");
@@ -240,8 +247,23 @@ int main(int argc, char** argv) {
       memory_mb < 0    ? 0
       : memory_mb == 0 ? kinetri::server::MemoryBudget::DefaultLimit()
                        : static_cast<uint64_t>(memory_mb) << 20);
+  const int query_threads = absl::GetFlag(FLAGS_query_threads);
+  const int query_nice = absl::GetFlag(FLAGS_query_nice);
+  if (query_threads < 0 || query_threads > 1024 || query_nice < 0 ||
+      query_nice > 19) {
+    std::fprintf(stderr,
+                 "kinetri-server: --query_threads must be in [0, 1024] and "
+                 "--query_nice in [0, 19]\n");
+    return 2;
+  }
+  kinetri::server::QueryPool query_pool(
+      query_threads > 0
+          ? query_threads
+          : static_cast<int>(std::max(1u, std::thread::hardware_concurrency())),
+      query_nice);
   kinetri::server::KinetriServiceImpl service(&registry, &metrics, &watchdog,
                                               &budget, auth.get());
+  service.SetQueryPool(&query_pool);
   if (budget.limit() > 0) {
     std::printf("kinetri-server: memory budget %llu MiB (--max_memory_mb)\n",
                 static_cast<unsigned long long>(budget.limit() >> 20));

@@ -955,7 +955,6 @@ grpc::Status KinetriServiceImpl::RunQuery(
        first += block_rows) {
     const uint64_t count = std::min(block_rows, total_rows - first);
     limits.max_total_results = session.max_query_results() - produced;
-    const auto start = Clock::now();
     absl::StatusOr<core::NeighborLists> result;
     const absl::Span<const uint32_t> id_block =
         by_id ? absl::MakeConstSpan(ids).subspan(first, count)
@@ -963,24 +962,35 @@ grpc::Status KinetriServiceImpl::RunQuery(
     const absl::Span<const core::Vec2> pos_block =
         by_id ? absl::Span<const core::Vec2>()
               : absl::MakeConstSpan(positions).subspan(first, count);
-    if (radius) {
-      core::RowOptions rows;
-      rows.distances = req->include_distances();
-      result =
-          by_id ? core::WithinRadiusOfPoints(
-                      t, id_block, req->radius(), req->exclude_self(),
-                      req->max_results_per_row(), limits, rows)
-                : core::WithinRadius(t, pos_block, req->radius(),
-                                     req->max_results_per_row(), limits, rows);
-    } else if (all_nearest) {
-      result = core::AllNearestNeighbors(t);
+    auto compute = [&] {
+      const auto start = Clock::now();
+      if (radius) {
+        core::RowOptions rows;
+        rows.distances = req->include_distances();
+        result = by_id ? core::WithinRadiusOfPoints(
+                             t, id_block, req->radius(), req->exclude_self(),
+                             req->max_results_per_row(), limits, rows)
+                       : core::WithinRadius(t, pos_block, req->radius(),
+                                            req->max_results_per_row(), limits,
+                                            rows);
+      } else if (all_nearest) {
+        result = core::AllNearestNeighbors(t);
+      } else {
+        result = by_id ? core::KNearestOfPoints(t, id_block, k,
+                                                req->exclude_self(), limits)
+                       : core::KNearest(t, pos_block, k, limits);
+      }
+      compute_seconds +=
+          std::chrono::duration<double>(Clock::now() - start).count();
+    };
+    if (query_pool_ != nullptr) {
+      // On the query threads, below the priority of steps; a call that is
+      // cancelled while it waits for one is not computed.
+      absl::Status waited = query_pool_->Run(cancel, "query", compute);
+      if (!waited.ok()) return (ToGrpc(waited));
     } else {
-      result = by_id ? core::KNearestOfPoints(t, id_block, k,
-                                              req->exclude_self(), limits)
-                     : core::KNearest(t, pos_block, k, limits);
+      compute();
     }
-    compute_seconds +=
-        std::chrono::duration<double>(Clock::now() - start).count();
     if (!result.ok()) {
       if (result.status().code() == absl::StatusCode::kResourceExhausted) {
         return (grpc::Status(

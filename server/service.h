@@ -15,6 +15,7 @@
 #include "server/memory_budget.h"
 #include "server/metrics.h"
 #include "server/persistence.h"
+#include "server/query_pool.h"
 #include "server/session_registry.h"
 
 namespace kinetri::server {
@@ -55,6 +56,10 @@ class KinetriServiceImpl final : public v1::KinetriService::Service {
   // write, which a query computing a block of rows may not reach for
   // seconds.
   void StopAllWork() { stop_all_ = true; }
+  // Query rows are computed on `pool` (server/query_pool.h: lower priority
+  // than steps) from now on; null (the default): on the handler's thread.
+  // Set before the server starts.
+  void SetQueryPool(QueryPool* pool) { query_pool_ = pool; }
 
   // The streaming RPCs read their requests as bytes (server/message_reader.h:
   // a corrupt message is an error, never a clean end of the stream); the
@@ -103,6 +108,7 @@ class KinetriServiceImpl final : public v1::KinetriService::Service {
   MemoryBudget* budget_;
   const TokenAuth* auth_;
   std::atomic<bool> stop_all_{false};
+  QueryPool* query_pool_ = nullptr;
   SessionStore* store_ = nullptr;
   // Durable creations one at a time: the existence check, the first
   // snapshot and the registration must not interleave for one name.

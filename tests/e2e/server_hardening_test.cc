@@ -180,7 +180,8 @@ TEST(HardeningLimits, ResultLimitStopsTheWork) {
 }
 
 // Defect 4: a 1-point step waited 14-26 s behind a stream of k-NN queries
-// (the reader-preferring lock let readers in ahead of it forever).
+// (the reader-preferring lock let readers in ahead of it forever); then,
+// with snapshots, still 6.7 ms at p50 behind the queries' CPU.
 TEST_F(HardeningTest, StepsAreNotStarvedByQueries) {
   const size_t n = 50000;
   auto s = client_->CreateSession(UniformXY(n, 3), v1::SessionOptions(), "st");
@@ -218,8 +219,10 @@ TEST_F(HardeningTest, StepsAreNotStarvedByQueries) {
     });
   }
   std::this_thread::sleep_for(std::chrono::milliseconds(300));
+  // At least 200 steps and a second of queries (several dozen of them).
   std::vector<double> busy_ms;
-  for (int i = 0; i < kSteps; ++i) {
+  const auto busy_t0 = Clock::now();
+  while (busy_ms.size() < kSteps || MsSince(busy_t0) < 1000) {
     const auto t0 = Clock::now();
     ASSERT_TRUE((*steps)->MoveBy({7}, {1e-4, 0}).ok());
     busy_ms.push_back(MsSince(t0));
@@ -232,19 +235,24 @@ TEST_F(HardeningTest, StepsAreNotStarvedByQueries) {
   const double busy_p50 = percentile(busy_ms, 0.5);
   const double busy_p99 = percentile(busy_ms, 0.99);
   std::printf(
-      "1-point step on %zu points, %d steps: idle p50 %.2f ms p99 %.2f ms; "
-      "under 8 query loops p50 %.2f ms p99 %.2f ms max %.2f ms "
+      "1-point step on %zu points: %d idle steps p50 %.2f ms p99 %.2f ms; "
+      "%zu steps under 8 query loops p50 %.2f ms p99 %.2f ms max %.2f ms "
       "(%d queries meanwhile, one alone %.0f ms)\n",
-      n, kSteps, idle_p50, idle_p99, busy_p50, busy_p99,
+      n, kSteps, idle_p50, idle_p99, busy_ms.size(), busy_p50, busy_p99,
       percentile(busy_ms, 1.0), during, alone_ms);
   EXPECT_GT(during, 0);
-  // Queries read a snapshot: a step never waits for one (it copies the
-  // triangulation while readers hold it), so half the steps take less than
-  // a tenth of one query, and the slowest 1 % less than about one query:
-  // what remains is the CPU the eight loops, their clients and the step
-  // share (docs/RELIABILITY.md).
-  EXPECT_LT(busy_p50, alone_ms / 10 + 1);
-  EXPECT_LT(busy_p99, 2 * alone_ms + 20);
+  // Queries read a snapshot: a step never waits for one on a lock (it
+  // copies the triangulation while readers hold it). Their rows are
+  // computed on the server's query threads, at most one per core and at a
+  // raised nice value (server/query_pool.h), so the step's threads take a
+  // core as soon as they wake: half the steps cost about what they cost
+  // idle (3x and 1 ms of slack; without the pool: 6.7 ms against 0.4 ms
+  // idle in CI). The slowest 1 % wait less than one query: what remains is
+  // gRPC's own threads, the handlers encoding rows and the eight test
+  // clients decoding them, all at the step's priority on two cores
+  // (docs/RELIABILITY.md).
+  EXPECT_LT(busy_p50, 3 * idle_p50 + 1);
+  EXPECT_LT(busy_p99, alone_ms + 5);
 }
 
 // A query answers from the step it started on, every chunk of it, even when
