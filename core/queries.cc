@@ -503,7 +503,9 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
 }  // namespace
 
 absl::StatusOr<NeighborLists> AllNearestNeighbors(const Triangulation& t) {
-  const TriangulationView v = t.query_view();
+  // One walk around each site's fan (the rows are used when a query built
+  // them since the step, never built for this).
+  const TriangulationView v = t.view_with_cached_rows();
   const uint32_t n = v.num_points;
   NeighborLists out;
   out.offsets.assign(size_t{n} + 1, 0);
@@ -522,6 +524,16 @@ absl::StatusOr<NeighborLists> AllNearestNeighbors(const Triangulation& t) {
       }
     });
   });
+  out.truncated.assign(n, 0);
+  if (std::find(nn.begin(), nn.end(), kNoVertex) == nn.end()) {
+    // Every point has one (two points or more): the rows are the arrays.
+    t.Run([&] {
+      ParallelFor(0, n, [&](size_t i) { out.offsets[i + 1] = i + 1; });
+    });
+    out.ids = std::move(nn);
+    out.distances = std::move(dist);
+    return out;
+  }
   for (uint32_t i = 0; i < n; ++i) {
     out.offsets[i + 1] = out.offsets[i] + (nn[i] != kNoVertex ? 1 : 0);
   }
@@ -532,7 +544,6 @@ absl::StatusOr<NeighborLists> AllNearestNeighbors(const Triangulation& t) {
     out.ids.push_back(nn[i]);
     out.distances.push_back(dist[i]);
   }
-  out.truncated.assign(n, 0);
   return out;
 }
 

@@ -298,6 +298,14 @@ TriangulationView Triangulation::query_view() const {
   return v;
 }
 
+TriangulationView Triangulation::view_with_cached_rows() const {
+  {
+    std::lock_guard<std::mutex> lock(adjacency_->mu);
+    if (!adjacency_->valid) return view();
+  }
+  return query_view();  // built: returns at once
+}
+
 bool Triangulation::Rebuild(const std::vector<Vec2>& positions_by_ext,
                             const CancelToken* cancel) {
   // Built aside and swapped in at the end, so that a cancelled rebuild

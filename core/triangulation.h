@@ -204,6 +204,10 @@ class Triangulation {
   // built on the first call after a change (in parallel, inside the arena)
   // and reused until the next step; concurrent callers wait for one build.
   TriangulationView query_view() const;
+  // query_view() when its rows are already built, else view(): for a
+  // search that walks each fan once anyway (all-points NN), building the
+  // rows first would cost two more walks of every fan.
+  TriangulationView view_with_cached_rows() const;
 
   // Runs fn inside this triangulation's thread arena.
   template <typename Fn>
