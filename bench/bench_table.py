@@ -13,7 +13,7 @@ import sys
 from collections import defaultdict
 
 ENGINES = ["kinetri", "kinetri-1t", "kinetri-rounds", "kinetri-device",
-           "cgal-rebuild", "cgal-move", "grid", "nanoflann"]
+           "cgal-rebuild", "cgal-move", "grid", "grid-device", "nanoflann"]
 PHASES = ["update", "all_nn", "knn8", "radius8", "radius32", "points_nn",
           "points_radius8"]
 

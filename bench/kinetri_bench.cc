@@ -34,6 +34,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
+#include "bench/device_grid.h"
 #include "bench/grid_engine.h"
 #include "bench/nanoflann_cloud.h"
 #ifdef KINETRI_BENCH_CUDA
@@ -60,11 +61,21 @@ ABSL_FLAG(int, query_points, 100000, "arbitrary query points per step");
 ABSL_FLAG(std::string, engines, "",
           "comma-separated engines to run (default: all of kinetri, "
           "kinetri-1t, kinetri-rounds, kinetri-device, cgal-rebuild, "
-          "cgal-move, grid, nanoflann; kinetri-rounds is the round executor "
-          "on all threads, kinetri-device the device executor (on a GPU "
-          "when built with CUDA and one is present, else its emulated "
-          "backend on CPU threads: not a speed claim), both update and "
-          "all-NN only)");
+          "cgal-move, grid, grid-device, nanoflann; kinetri-rounds is the "
+          "round executor on all threads, kinetri-device the device "
+          "executor (on a GPU when built with CUDA and one is present, else "
+          "its emulated backend on CPU threads: not a speed claim: update, "
+          "all-NN and the queries), kinetri-1t and kinetri-rounds update "
+          "and all-NN only; grid-device a uniform grid on the same "
+          "device backend as kinetri-device, sort + all-NN)");
+
+#ifndef KINETRI_DEVICE_EMULATED
+// Without the CCCL headers there is no device grid (nor device executor).
+std::unique_ptr<kinetri::bench::DeviceGrid> kinetri::bench::MakeDeviceGrid(
+    kinetri::core::device::DeviceBackend) {
+  return nullptr;
+}
+#endif
 
 namespace {
 
@@ -278,8 +289,9 @@ int main(int argc, char** argv) {
   const size_t num_queries =
       static_cast<size_t>(std::max(0, absl::GetFlag(FLAGS_query_points)));
   std::set<std::string> engines = {
-      "kinetri",      "kinetri-1t", "kinetri-rounds", "kinetri-device",
-      "cgal-rebuild", "cgal-move",  "grid",           "nanoflann"};
+      "kinetri",        "kinetri-1t",   "kinetri-rounds",
+      "kinetri-device", "cgal-rebuild", "cgal-move",
+      "grid",           "grid-device",  "nanoflann"};
   if (!absl::GetFlag(FLAGS_engines).empty()) {
     std::set<std::string> want;
     for (auto e : absl::StrSplit(absl::GetFlag(FLAGS_engines), ',')) {
@@ -454,7 +466,9 @@ int main(int argc, char** argv) {
             for (uint32_t i = 0; i < n; ++i)
               a.nn_d2.push_back(D2(pos[i], pos[nn->ids[nn->offsets[i]]]));
           }
-          if (t != tri.get()) continue;
+          // The queries: on the CPU executor (all threads) and on the
+          // device executor (its own query path, cross-checked too).
+          if (t != tri.get() && t != tri_device.get()) continue;
           t0 = Clock::now();
           auto knn = kc::KNearestOfPoints(*t, all, 8, true);
           rec(e, "knn8", Ms(t0));
@@ -553,6 +567,31 @@ int main(int argc, char** argv) {
             for (size_t i = 0; i < qs.size(); ++i) {
               a.qnn_d2.push_back(D2(qs[i], pos[pnn[i]]));
               a.qr8_count.push_back(offq[i + 1] - offq[i]);
+            }
+          }
+        }
+        if (on("grid-device")) {
+          // The device backend kinetri-device runs on (CUDA when present).
+          const auto backend = kc::device::DeviceBackendAvailable(
+                                   kc::device::DeviceBackend::kCuda)
+                                   ? kc::device::DeviceBackend::kCuda
+                                   : kc::device::DeviceBackend::kEmulated;
+          auto dgrid = kinetri::bench::MakeDeviceGrid(backend);
+          if (dgrid == nullptr) {
+            std::fprintf(stderr, "grid-device: no %s backend in this build\n",
+                         kc::device::DeviceBackendName(backend));
+            return 1;
+          }
+          auto t0 = Clock::now();
+          dgrid->Build(pos, std::sqrt((hi.x - lo.x) * (hi.y - lo.y) / n));
+          rec("grid-device", "update", Ms(t0));
+          t0 = Clock::now();
+          const std::vector<uint32_t> nn = dgrid->AllNearest();
+          rec("grid-device", "all_nn", Ms(t0));
+          if (check) {
+            Answers& a = ans["grid-device"];
+            for (uint32_t i = 0; i < n; ++i) {
+              a.nn_d2.push_back(D2(pos[i], pos[nn[i]]));
             }
           }
         }

@@ -300,12 +300,7 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
       });
     });
   }
-  if (exceeded.load()) {
-    return absl::ResourceExhaustedError(absl::StrCat(
-        "query stopped: its rows hold more than ", limits.max_total_results,
-        " results in all (the limit); ask fewer targets, a smaller k or "
-        "radius, or set max_results_per_row"));
-  }
+  if (exceeded.load()) return ResultLimitError(limits.max_total_results);
   if (stop.load() && limits.cancel != nullptr) {
     if (absl::Status s = limits.cancel->Check("query"); !s.ok()) return s;
   }
@@ -500,9 +495,50 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
       });
 }
 
+// The rows of `q` from t's device executor (t.device_executor() is set;
+// the arguments are checked), over the query view of t's current step.
+absl::StatusOr<NeighborLists> DeviceRows(const Triangulation& t,
+                                         const device::DeviceQuery& q) {
+  const TriangulationView v = t.query_view();
+  absl::StatusOr<NeighborLists> out = absl::InternalError("not run");
+  t.Run([&] { out = t.device_executor()->Query(v, t.steps(), q); });
+  return out;
+}
+
+device::DeviceQuery DeviceKnn(int k, QueryLimits limits) {
+  device::DeviceQuery q;
+  q.kind = device::DeviceQuery::Kind::kKNearest;
+  q.k = static_cast<uint32_t>(k);
+  q.limits = limits;
+  return q;
+}
+
+device::DeviceQuery DeviceRadius(double r, uint32_t max_results,
+                                 QueryLimits limits, RowOptions options) {
+  device::DeviceQuery q;
+  q.kind = device::DeviceQuery::Kind::kRadius;
+  q.radius = r;
+  q.max_results = max_results;
+  q.rows = options;
+  q.limits = limits;
+  return q;
+}
+
 }  // namespace
 
+absl::Status ResultLimitError(uint64_t max_total_results) {
+  return absl::ResourceExhaustedError(absl::StrCat(
+      "query stopped: its rows hold more than ", max_total_results,
+      " results in all (the limit); ask fewer targets, a smaller k or "
+      "radius, or set max_results_per_row"));
+}
+
 absl::StatusOr<NeighborLists> AllNearestNeighbors(const Triangulation& t) {
+  if (t.device_executor() != nullptr) {
+    device::DeviceQuery q;
+    q.kind = device::DeviceQuery::Kind::kAllNearest;
+    return DeviceRows(t, q);
+  }
   // One walk around each site's fan (the rows are used when a query built
   // them since the step, never built for this).
   const TriangulationView v = t.view_with_cached_rows();
@@ -552,6 +588,12 @@ absl::StatusOr<NeighborLists> KNearest(const Triangulation& t,
                                        QueryLimits limits) {
   auto qs = PositionQueries(queries);
   if (!qs.ok()) return qs.status();
+  if (t.device_executor() != nullptr) {
+    if (absl::Status s = CheckQueryK(k); !s.ok()) return s;
+    device::DeviceQuery q = DeviceKnn(k, limits);
+    q.positions = queries;
+    return DeviceRows(t, q);
+  }
   return KNearestImpl(t, *qs, k, limits);
 }
 
@@ -561,6 +603,14 @@ absl::StatusOr<NeighborLists> KNearestOfPoints(const Triangulation& t,
                                                QueryLimits limits) {
   auto qs = PointQueries(t, ids, exclude_self);
   if (!qs.ok()) return qs.status();
+  if (t.device_executor() != nullptr) {
+    if (absl::Status s = CheckQueryK(k); !s.ok()) return s;
+    device::DeviceQuery q = DeviceKnn(k, limits);
+    q.by_ids = true;
+    q.ids = ids;
+    q.exclude_self = exclude_self;
+    return DeviceRows(t, q);
+  }
   return KNearestImpl(t, *qs, k, limits);
 }
 
@@ -576,6 +626,12 @@ absl::StatusOr<NeighborLists> WithinRadius(const Triangulation& t,
                                            RowOptions options) {
   auto qs = PositionQueries(queries);
   if (!qs.ok()) return qs.status();
+  if (t.device_executor() != nullptr) {
+    if (absl::Status s = CheckRadius(r); !s.ok()) return s;
+    device::DeviceQuery q = DeviceRadius(r, max_results, limits, options);
+    q.positions = queries;
+    return DeviceRows(t, q);
+  }
   return RadiusImpl(t, *qs, r, max_results, limits, options);
 }
 
@@ -606,6 +662,14 @@ absl::StatusOr<NeighborLists> WithinRadiusOfPoints(
     RowOptions options) {
   auto qs = PointQueries(t, ids, exclude_self);
   if (!qs.ok()) return qs.status();
+  if (t.device_executor() != nullptr) {
+    if (absl::Status s = CheckRadius(r); !s.ok()) return s;
+    device::DeviceQuery q = DeviceRadius(r, max_results, limits, options);
+    q.by_ids = true;
+    q.ids = ids;
+    q.exclude_self = exclude_self;
+    return DeviceRows(t, q);
+  }
   return RadiusImpl(t, *qs, r, max_results, limits, options);
 }
 

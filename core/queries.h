@@ -38,44 +38,11 @@
 #include "absl/status/statusor.h"
 #include "absl/types/span.h"
 #include "core/cancel.h"
+#include "core/query_types.h"
 #include "core/triangulation.h"
 #include "core/vec2.h"
 
 namespace kinetri::core {
-
-// Compressed sparse rows: the neighbours of query i are
-// ids[offsets[i] .. offsets[i+1]) with matching distances, closest first.
-struct NeighborLists {
-  std::vector<uint64_t> offsets;   // size = queries + 1
-  std::vector<uint32_t> ids;       // external point ids
-  std::vector<double> distances;   // Euclidean, rounded to double
-  std::vector<uint8_t> truncated;  // per query: max_results cut the row
-
-  size_t num_queries() const {
-    return offsets.empty() ? 0 : offsets.size() - 1;
-  }
-  size_t row_size(size_t i) const { return offsets[i + 1] - offsets[i]; }
-};
-
-// What radius rows carry. The closest-first order costs a sort per row and
-// the distances a square root per result; callers that need only the set of
-// neighbours ("who is within r of whom") can drop either. Rows cut by
-// max_results are always the closest points, whatever the order asked for.
-struct RowOptions {
-  bool closest_first = true;  // false: rows in traversal order
-  bool distances = true;      // false: NeighborLists::distances stays empty
-};
-
-struct QueryLimits {
-  // Total results above this fail with RESOURCE_EXHAUSTED (0 = no limit).
-  // The limit is checked while rows are built (a row stops as soon as it
-  // would pass it), so a refused query costs about the limit, not its
-  // answer.
-  uint64_t max_total_results = 0;
-  // Polled per row and every few thousand sites inside a row; when it fires
-  // the query stops and returns CANCELLED or DEADLINE_EXCEEDED.
-  const CancelToken* cancel = nullptr;
-};
 
 // Nearest other point of every point (the note's all-points query). A point
 // with no other point gets an empty row. Duplicates find each other at 0.

@@ -22,6 +22,7 @@
 #define KINETRI_CORE_QUERY_SEARCH_H_
 
 #include <cstdint>
+#include <type_traits>
 
 #include "core/hd.h"
 #include "core/predicates.h"
@@ -41,14 +42,27 @@ KINETRI_HD inline bool InDisk(const TriangulationView& v, const Vec2& q,
   return CompareDistanceToRadius(q, v.pos[w], r) <= 0;
 }
 
+// emit(site), and whether the search goes on (an emit returning bool may
+// stop it).
+template <typename Emit>
+KINETRI_HD bool EmitAndGoOn(Emit& emit, uint32_t site) {
+  if constexpr (std::is_void_v<decltype(emit(site))>) {
+    emit(site);
+    return true;
+  } else {
+    return emit(site);
+  }
+}
+
 // Calls emit(site) for every site within r of q; root must be the nearest
-// site of q (WalkToNearestSite). Returns the number of sites emitted.
+// site of q (WalkToNearestSite). Returns the number of sites emitted. An
+// emit that returns bool stops the search by returning false.
 template <typename Emit>
 KINETRI_HD uint32_t RadiusSearch(const TriangulationView& v, const Vec2& q,
                                  double r, uint32_t root, Emit&& emit) {
   if (!InDisk(v, q, r, root)) return 0;
   uint32_t count = 1;
-  emit(root);
+  if (!EmitAndGoOn(emit, root)) return count;
   uint32_t u = root;
   const uint32_t* it = v.RowBegin(u);
   while (true) {
@@ -63,7 +77,7 @@ KINETRI_HD uint32_t RadiusSearch(const TriangulationView& v, const Vec2& q,
       if (!InDisk(v, q, r, w)) continue;
       if (FirstNeighbor(v, q, w, /*include_self=*/false) != u) continue;
       ++count;
-      emit(w);
+      if (!EmitAndGoOn(emit, w)) return count;
       u = w;
       it = v.RowBegin(u);
       descended = true;
@@ -80,16 +94,34 @@ KINETRI_HD uint32_t RadiusSearch(const TriangulationView& v, const Vec2& q,
   }
 }
 
+// Number of points of site s other than `self` (an external id, or
+// kNoVertex): O(1) with the view's site member rows.
+KINETRI_HD inline uint32_t PointsOfSite(const TriangulationView& v, uint32_t s,
+                                        uint32_t self) {
+  if (v.dup_next[s] == kNoVertex) return v.ext_of_int[s] != self ? 1u : 0u;
+  if (v.site_member_offsets != nullptr) {
+    uint32_t n = v.site_member_offsets[s + 1] - v.site_member_offsets[s];
+    if (self != kNoVertex && v.rep[v.int_of_ext[self]] == s) --n;
+    return n;
+  }
+  uint32_t n = 0;
+  for (uint32_t p = s; p != kNoVertex; p = v.dup_next[p]) {
+    if (v.ext_of_int[p] != self) ++n;
+  }
+  return n;
+}
+
 // Number of points (not sites) within r of q, `self` (an external id, or
-// kNoVertex) excluded.
+// kNoVertex) excluded; the search stops once the count reaches `cap`.
 KINETRI_HD inline uint32_t CountPointsWithin(const TriangulationView& v,
                                              const Vec2& q, double r,
-                                             uint32_t root, uint32_t self) {
+                                             uint32_t root, uint32_t self,
+                                             uint32_t cap = UINT32_MAX) {
   uint32_t points = 0;
   RadiusSearch(v, q, r, root, [&](uint32_t s) {
-    for (uint32_t p = s; p != kNoVertex; p = v.dup_next[p]) {
-      if (v.ext_of_int[p] != self) ++points;
-    }
+    const uint32_t n = PointsOfSite(v, s, self);
+    points = n > cap - points ? cap : points + n;
+    return points < cap;
   });
   return points;
 }
@@ -117,32 +149,47 @@ KINETRI_HD inline uint32_t KNearestSearch(const TriangulationView& v,
   if (!(r > 0.0)) r = 1.0;  // a single site: any radius holds it
   // Grow until the disk holds k points or all of them (a disk holding every
   // site stops growing the count).
-  uint32_t have = CountPointsWithin(v, q, r, root, self);
+  uint32_t have = CountPointsWithin(v, q, r, root, self, k);
   const uint32_t total = v.num_points - (self != kNoVertex ? 1u : 0u);
   while (have < k && have < total) {
     r *= 2.0;
-    have = CountPointsWithin(v, q, r, root, self);
+    have = CountPointsWithin(v, q, r, root, self, k);
   }
   // Keep the k first (exact order; coincident points by external id).
   uint32_t n = 0;
   RadiusSearch(v, q, r, root, [&](uint32_t s) {
     const double d2 = SquaredDistance(q, v.pos[s]);
-    for (uint32_t p = s; p != kNoVertex; p = v.dup_next[p]) {
-      const uint32_t ext = v.ext_of_int[p];
-      if (ext == self) continue;
-      // Insertion into the sorted buffer of at most k entries.
-      auto before = [&](const KnnEntry& a) {  // is (p, d2) before a?
-        const int c =
-            CompareCloserCached(q, v.pos[p], d2, v.pos[a.point], a.d2);
-        return c < 0 || (c == 0 && ext < v.ext_of_int[a.point]);
-      };
-      if (n == k && !before(out[k - 1])) continue;
+    // Is point (p, ext) at distance d2 before entry a?
+    auto before = [&](uint32_t p, uint32_t ext, const KnnEntry& a) {
+      const int c = CompareCloserCached(q, v.pos[p], d2, v.pos[a.point], a.d2);
+      return c < 0 || (c == 0 && ext < v.ext_of_int[a.point]);
+    };
+    // Insertion into the sorted buffer of at most k entries; false when
+    // the point does not enter it.
+    auto insert = [&](uint32_t p, uint32_t ext) {
+      if (n == k && !before(p, ext, out[k - 1])) return false;
       uint32_t j = n < k ? n++ : k - 1;
-      while (j > 0 && before(out[j - 1])) {
+      while (j > 0 && before(p, ext, out[j - 1])) {
         out[j] = out[j - 1];
         --j;
       }
       out[j] = {p, d2};
+      return true;
+    };
+    if (v.dup_next[s] != kNoVertex && v.site_member_offsets != nullptr) {
+      // Members by ascending external id: once one stays out, all the
+      // later ones do (same distance, larger id).
+      const uint32_t end = v.site_member_offsets[s + 1];
+      for (uint32_t m = v.site_member_offsets[s]; m < end; ++m) {
+        const uint32_t ext = v.site_members[m];
+        if (ext == self) continue;
+        if (!insert(v.int_of_ext[ext], ext)) break;
+      }
+      return;
+    }
+    for (uint32_t p = s; p != kNoVertex; p = v.dup_next[p]) {
+      const uint32_t ext = v.ext_of_int[p];
+      if (ext != self) insert(p, ext);
     }
   });
   return n;

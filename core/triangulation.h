@@ -173,6 +173,9 @@ class Triangulation {
   Triangulation Clone() const;
   // Device memory held by the device executor (0 for the CPU executors).
   uint64_t device_bytes() const;
+  // The device executor (executor == kDevice), else null. Queries
+  // (core/queries.h) run on it, over the view of the current step.
+  device::DeviceExecutor* device_executor() const { return device_.get(); }
   // Steps applied so far (successful ApplyDisplacements calls).
   uint64_t steps() const { return steps_; }
 

@@ -23,6 +23,12 @@ uint64_t GpuFreeBytes() {
 }
 
 std::unique_ptr<DeviceExecutor> MakeCudaExecutor() {
+  // The exact predicates keep their expansions in per-thread local memory:
+  // the stack limit is raised once per process, when the first executor is
+  // made (never per call). A failure shows up as the first launch's error.
+  static const cudaError_t stack_limit =
+      cudaDeviceSetLimit(cudaLimitStackSize, 96 * 1024);
+  (void)stack_limit;
   return cuda_build::MakeExecutor(DeviceBackend::kCuda);
 }
 

@@ -7,7 +7,9 @@
 //     CPU threads (core/device/emulated_backend.cc), so that every CI run
 //     executes the same device source without a GPU.
 // Both come from core/device/round_executor.inl; nothing here exposes
-// Thrust or CUDA types.
+// Thrust or CUDA types. The same executor answers the queries of
+// core/queries.h for its triangulation (core/device/device_queries.inl,
+// the same mark-free searches of core/query_search.h on every backend).
 //
 // The executor owns a device copy of the mesh that lives across steps: after
 // a successful attempt the device and host meshes are equal and the next
@@ -29,6 +31,8 @@
 #include "core/cancel.h"
 #include "core/kinetic.h"
 #include "core/mesh.h"
+#include "core/query_types.h"
+#include "core/triangulation_view.h"
 #include "core/vec2.h"
 
 namespace kinetri::core::device {
@@ -53,6 +57,24 @@ struct DeviceAttempt {
   double transfer_seconds = 0.0;  // uploads and downloads
   uint64_t bytes_uploaded = 0;
   uint64_t bytes_downloaded = 0;
+};
+
+// One batch of queries for the device executor. Its arguments are already
+// checked (core/queries.cc checks them once for every executor).
+struct DeviceQuery {
+  enum class Kind { kAllNearest, kKNearest, kRadius };
+  Kind kind = Kind::kKNearest;
+  // Point queries (ids) or position queries (positions).
+  bool by_ids = false;
+  absl::Span<const uint32_t> ids;
+  absl::Span<const Vec2> positions;
+  bool exclude_self = false;
+  uint32_t k = 0;            // kKNearest
+  double radius = 0.0;       // kRadius
+  uint32_t max_results = 0;  // kRadius: per-row cut (0: none)
+  RowOptions rows;
+  QueryLimits limits;
+  size_t size() const { return by_ids ? ids.size() : positions.size(); }
 };
 
 class DeviceExecutor {
@@ -80,7 +102,22 @@ class DeviceExecutor {
       const std::vector<uint32_t>* seeds, double rebuild_fraction,
       const CancelToken* cancel) = 0;
 
-  // Device memory held across steps (mesh, positions, claims, scratch).
+  // Answers `query` on the device from its copy of the query view `host`
+  // (positions, numbering, neighbour rows, site members, and the hint grid
+  // of position queries). The copy is uploaded when `generation` differs
+  // from the one it holds (the owner passes its step count: the view
+  // changes only with a step) and kept until then. Answers, row order,
+  // truncation flags and refusals are those of core/queries.h. Queries run
+  // in blocks whose size adapts to keep each block near 10 ms; `cancel` is
+  // polled and the total limit checked between blocks (a row is counted
+  // before it is filled, so a refused query costs about the limit).
+  // Concurrent calls with the same generation are safe.
+  virtual absl::StatusOr<NeighborLists> Query(const TriangulationView& host,
+                                              uint64_t generation,
+                                              const DeviceQuery& query) = 0;
+
+  // Device memory held across steps (mesh, positions, claims, scratch, the
+  // query view).
   virtual uint64_t device_bytes() const = 0;
 };
 

@@ -37,6 +37,7 @@
 
 #include "core/device/atomic.h"
 #include "core/device/device_executor.h"
+#include "core/device/device_queries.inl"
 #include "core/flip_rules.h"
 #include "core/mesh.h"
 #include "core/vec2.h"
@@ -395,7 +396,14 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       words += v->capacity();
     }
     return words * sizeof(uint32_t) + pos_.capacity() * sizeof(Vec2) +
-           props_.capacity() * sizeof(rules::FixProposal);
+           props_.capacity() * sizeof(rules::FixProposal) + queries_.bytes();
+  }
+
+  absl::StatusOr<NeighborLists> Query(const TriangulationView& host,
+                                      uint64_t generation,
+                                      const DeviceQuery& query) override {
+    return queries_.Run(host, generation, query,
+                        /*large_blocks=*/backend_ == DeviceBackend::kCuda);
   }
 
   absl::StatusOr<DeviceAttempt> Attempt(Mesh& mesh, absl::Span<const Vec2> to,
@@ -660,6 +668,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       touched_, seeds_;
   thr::device_vector<uint8_t> flags_;
   thr::device_vector<rules::FixProposal> props_;
+  QueryEngine queries_;  // the query view and the queries over it
 };
 
 }  // namespace

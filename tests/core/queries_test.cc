@@ -1,4 +1,7 @@
 // Every query kind against brute force on random and degenerate inputs.
+// Built for the host executors and, with KINETRI_TEST_DEVICE /
+// KINETRI_TEST_CUDA, for the device executor's queries (the same calls of
+// core/queries.h then run on its emulated or CUDA backend).
 #include "core/queries.h"
 
 #include <gtest/gtest.h>
@@ -14,6 +17,7 @@
 #include <thread>
 
 #include "core/predicates.h"
+#include "tests/core/executor_under_test.h"
 #include "tests/core/test_util.h"
 
 namespace kinetri::core {
@@ -22,12 +26,17 @@ namespace {
 using testing::BruteRank;
 using testing::QueryPoints;
 
+// A triangulation on the executor under test.
+absl::StatusOr<Triangulation> Make(const std::vector<Vec2>& pts) {
+  return Triangulation::Create(pts, testing::ExecutorOptions());
+}
+
 std::vector<uint32_t> Row(const NeighborLists& r, size_t i) {
   return {r.ids.begin() + r.offsets[i], r.ids.begin() + r.offsets[i + 1]};
 }
 
 void CheckAllQueries(const std::vector<Vec2>& pts, uint64_t seed) {
-  auto t = Triangulation::Create(pts);
+  auto t = Make(pts);
   ASSERT_TRUE(t.ok()) << t.status();
   const uint32_t n = pts.size();
   // All-points nearest neighbour.
@@ -151,7 +160,7 @@ TEST(Queries, ExtremeScales) {
 
 TEST(Queries, AfterMotion) {
   const size_t n = 1500;
-  auto t = Triangulation::Create(testing::UniformPoints(n, 21));
+  auto t = Make(testing::UniformPoints(n, 21));
   ASSERT_TRUE(t.ok());
   std::mt19937_64 rng(22);
   std::normal_distribution<double> g(0.0, 0.01);
@@ -181,7 +190,7 @@ TEST(Queries, ThreadCountDoesNotChangeResults) {
   TriangulationOptions one;
   one.num_threads = 1;
   auto a = Triangulation::Create(pts, one);
-  auto b = Triangulation::Create(pts);
+  auto b = Make(pts);
   ASSERT_TRUE(a.ok() && b.ok());
   const auto qs = QueryPoints(pts, 2000, 25);
   auto ra = WithinRadius(*a, qs, 0.03, 0);
@@ -192,7 +201,7 @@ TEST(Queries, ThreadCountDoesNotChangeResults) {
 }
 
 TEST(Queries, BadArguments) {
-  auto t = Triangulation::Create(testing::UniformPoints(100, 26));
+  auto t = Make(testing::UniformPoints(100, 26));
   ASSERT_TRUE(t.ok());
   const std::vector<Vec2> q = {{0.5, 0.5}};
   EXPECT_EQ(KNearest(*t, q, 0).status().code(),
@@ -220,7 +229,7 @@ TEST(Queries, BadArguments) {
 // answer would be 10^8 results is refused after about the limit's worth.
 TEST(Queries, TotalLimitStopsTheWork) {
   const auto pts = testing::UniformPoints(10000, 31);
-  auto t = Triangulation::Create(pts);
+  auto t = Make(pts);
   ASSERT_TRUE(t.ok());
   std::vector<uint32_t> ids(pts.size());
   std::iota(ids.begin(), ids.end(), 0u);
@@ -249,7 +258,7 @@ TEST(Queries, TotalLimitStopsTheWork) {
 TEST(Queries, CutRadiusRowsOfHugeDisks) {
   auto pts = testing::UniformPoints(6000, 32);
   for (int i = 0; i < 50; ++i) pts.push_back(pts[i]);  // duplicates too
-  auto t = Triangulation::Create(pts);
+  auto t = Make(pts);
   ASSERT_TRUE(t.ok());
   const auto qs = QueryPoints(pts, 40, 33);
   for (bool closest_first : {true, false}) {
@@ -280,7 +289,7 @@ TEST(Queries, CutRadiusRowsOfHugeDisks) {
 TEST(Queries, HugeSiteOfCoincidentPoints) {
   std::vector<Vec2> pts(30000, Vec2{0.25, 0.5});
   for (int i = 0; i < 10; ++i) pts.push_back({0.1 * i, 0.9 - 0.05 * i});
-  auto t = Triangulation::Create(pts);
+  auto t = Make(pts);
   ASSERT_TRUE(t.ok());
   std::vector<uint32_t> ids(pts.size());
   std::iota(ids.begin(), ids.end(), 0u);
@@ -301,7 +310,7 @@ TEST(Queries, HugeSiteOfCoincidentPoints) {
 // promptly (the time from firing to return is measured).
 TEST(Queries, CancellationStopsTheWork) {
   const auto pts = testing::UniformPoints(20000, 34);
-  auto t = Triangulation::Create(pts);
+  auto t = Make(pts);
   ASSERT_TRUE(t.ok());
   std::vector<uint32_t> ids(pts.size());
   std::iota(ids.begin(), ids.end(), 0u);
@@ -337,6 +346,51 @@ TEST(Queries, CancellationStopsTheWork) {
       std::chrono::duration<double, std::milli>(done - fired).count();
   std::printf("query stopped %.1f ms after cancellation\n", stop_ms);
   EXPECT_LT(stop_ms, 50.0 * (std::getenv("KINETRI_SLOW_MACHINE") ? 10 : 1));
+}
+
+// The executor under test answers exactly as the host's region executor
+// (ids, distances bit for bit, truncation flags) on the same points, before
+// and after steps: a device executor refreshes its copy of the query view
+// with every step, never answers from a stale one.
+TEST(Queries, SameAnswersAsTheHostExecutorAcrossSteps) {
+  auto pts = testing::ClusteredPoints(3000, 40);
+  for (int i = 0; i < 30; ++i) pts.push_back(pts[7 * i]);  // coincident
+  auto t = Make(pts);
+  auto host = Triangulation::Create(pts);
+  ASSERT_TRUE(t.ok() && host.ok());
+  std::vector<uint32_t> ids(pts.size());
+  std::iota(ids.begin(), ids.end(), 0u);
+  std::mt19937_64 rng(41);
+  std::normal_distribution<double> g(0.0, 0.002);
+  for (int step = 0; step < 3; ++step) {
+    const auto qs = QueryPoints(host->Positions(), 500, 42 + step);
+    auto same = [&](const absl::StatusOr<NeighborLists>& a,
+                    const absl::StatusOr<NeighborLists>& b, const char* what) {
+      ASSERT_TRUE(a.ok()) << a.status();
+      ASSERT_TRUE(b.ok()) << b.status();
+      EXPECT_EQ(a->offsets, b->offsets) << what << " step " << step;
+      EXPECT_EQ(a->ids, b->ids) << what << " step " << step;
+      EXPECT_EQ(a->distances, b->distances) << what << " step " << step;
+      EXPECT_EQ(a->truncated, b->truncated) << what << " step " << step;
+    };
+    same(AllNearestNeighbors(*t), AllNearestNeighbors(*host), "all-NN");
+    same(KNearest(*t, qs, 9), KNearest(*host, qs, 9), "kNN");
+    same(KNearestOfPoints(*t, ids, 5, true),
+         KNearestOfPoints(*host, ids, 5, true), "kNN of points");
+    same(WithinRadius(*t, qs, 0.01, 0), WithinRadius(*host, qs, 0.01, 0),
+         "radius");
+    same(WithinRadiusOfPoints(*t, ids, 0.02, true, 6),
+         WithinRadiusOfPoints(*host, ids, 0.02, true, 6), "cut radius");
+    std::vector<Vec2> d(pts.size());
+    for (auto& v : d) v = {g(rng), g(rng)};
+    ASSERT_TRUE(t->ApplyDisplacements(DisplacementBatch::Dense(d)).ok());
+    ASSERT_TRUE(host->ApplyDisplacements(DisplacementBatch::Dense(d)).ok());
+  }
+#if defined(KINETRI_TEST_DEVICE) || defined(KINETRI_TEST_CUDA)
+  // The answers came from the device: it holds the query view.
+  ASSERT_NE(t->device_executor(), nullptr);
+  EXPECT_GT(t->device_bytes(), 0u);
+#endif
 }
 
 }  // namespace

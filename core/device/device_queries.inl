@@ -1,0 +1,590 @@
+// The device executor's queries (DeviceExecutor::Query), written once in
+// CCCL and compiled with the rest of the executor by both backends (see
+// core/device/round_executor.inl, which includes this file). One query per
+// element, running the mark-free searches of core/query_search.h (the
+// greedy walk, the reverse-search radius enumeration, the growing-disk
+// k-NN) over a device copy of the triangulation's query view. Only Thrust
+// algorithms over the functors below touch device memory.
+//
+// A batch runs in blocks of queries. Each block: prepare the queries (walk
+// position queries to their nearest site), count every row (stopping at
+// what the row may still hold under the per-row cut and the total limit),
+// scan the counts into offsets, fill the rows, put them in the exact order
+// of core/queries.h with one sort, and download. Between blocks the host
+// polls the cancellation token and checks the total limit; block sizes
+// adapt so that a block takes about kBlockTargetSeconds.
+#ifndef KINETRI_DEVICE_NS
+#error "define KINETRI_DEVICE_NS before including device_queries.inl"
+#endif
+
+#include <thrust/copy.h>
+#include <thrust/device_vector.h>
+#include <thrust/for_each.h>
+#include <thrust/iterator/counting_iterator.h>
+#include <thrust/scan.h>
+#include <thrust/sequence.h>
+#include <thrust/sort.h>
+#include <thrust/transform.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdint>
+#include <memory>
+#include <mutex>
+#include <type_traits>
+#include <vector>
+
+#include "core/device/device_executor.h"
+#include "core/hint_grid.h"
+#include "core/query_search.h"
+#include "core/query_types.h"
+#include "core/query_walks.h"
+#include "core/triangulation_view.h"
+
+namespace kinetri::core::device {
+namespace KINETRI_DEVICE_NS {
+namespace {
+
+namespace qthr = THRUST_NS_QUALIFIER;
+
+static_assert(std::is_trivially_copyable_v<TriangulationView>);
+static_assert(std::is_trivially_copyable_v<HintGridView>);
+static_assert(std::is_trivially_copyable_v<KnnEntry>);
+
+// One query on the device: where it is, its nearest site, the point it
+// leaves out (external id, or kNoVertex).
+struct QueryItem {
+  Vec2 q;
+  uint32_t root;
+  uint32_t self;
+};
+static_assert(std::is_trivially_copyable_v<QueryItem>);
+
+struct PrepareIds {
+  TriangulationView v;
+  const uint32_t* ids;
+  bool exclude_self;
+  QueryItem* out;
+  KINETRI_HD void operator()(uint32_t i) const {
+    const uint32_t in = v.int_of_ext[ids[i]];
+    out[i] = {v.pos[in], v.rep[in], exclude_self ? ids[i] : kNoVertex};
+  }
+};
+
+struct PreparePositions {
+  TriangulationView v;
+  HintGridView hints;
+  const Vec2* qs;
+  QueryItem* out;
+  KINETRI_HD void operator()(uint32_t i) const {
+    out[i] = {qs[i], WalkToNearestSite(v, qs[i], hints.Hint(qs[i])), kNoVertex};
+  }
+};
+
+// k-NN rows into k slots per query; counts[i] = the row's length.
+struct KnnRows {
+  TriangulationView v;
+  const QueryItem* qs;
+  uint32_t k;
+  KnnEntry* slots;
+  uint64_t* counts;
+  KINETRI_HD void operator()(uint32_t i) const {
+    const QueryItem& it = qs[i];
+    counts[i] =
+        KNearestSearch(v, it.q, k, it.root, it.self, slots + uint64_t{i} * k);
+  }
+};
+
+// Radius rows, first pass: points within r of each query, counted up to
+// `cap` (max_results + 1 when rows are cut, the rest of the total limit
+// + 1 when there is one). kept[i] is what the row will hold.
+struct RadiusCounts {
+  TriangulationView v;
+  const QueryItem* qs;
+  double r;
+  uint32_t max_results;
+  uint32_t cap;
+  uint32_t* found;
+  uint64_t* kept;
+  KINETRI_HD void operator()(uint32_t i) const {
+    const QueryItem& it = qs[i];
+    const uint32_t n = CountPointsWithin(v, it.q, r, it.root, it.self, cap);
+    found[i] = n;
+    kept[i] = max_results != 0 && n > max_results ? max_results : n;
+  }
+};
+
+// Radius rows, second pass: the points of each row (internal id, squared
+// distance) from offsets[i], and the row of each entry. A cut row holds
+// the max_results first points (the k-NN search: every one of them lies
+// in the disk, which holds more), already in order; the others come in
+// traversal order.
+struct RadiusFill {
+  TriangulationView v;
+  const QueryItem* qs;
+  double r;
+  uint32_t max_results;
+  const uint32_t* found;
+  const uint64_t* offsets;
+  KnnEntry* entries;
+  uint32_t* rows;
+  KINETRI_HD void operator()(uint32_t i) const {
+    const QueryItem& it = qs[i];
+    const uint64_t b = offsets[i], e = offsets[i + 1];
+    for (uint64_t j = b; j < e; ++j) rows[j] = i;
+    if (max_results != 0 && found[i] > max_results) {
+      KNearestSearch(v, it.q, max_results, it.root, it.self, entries + b);
+      return;
+    }
+    uint64_t j = b;
+    RadiusSearch(v, it.q, r, it.root, [&](uint32_t s) {
+      const double d2 = SquaredDistance(it.q, v.pos[s]);
+      if (v.dup_next[s] != kNoVertex && v.site_member_offsets != nullptr) {
+        const uint32_t end = v.site_member_offsets[s + 1];
+        for (uint32_t m = v.site_member_offsets[s]; m < end; ++m) {
+          const uint32_t ext = v.site_members[m];
+          if (ext != it.self) entries[j++] = {v.int_of_ext[ext], d2};
+        }
+        return;
+      }
+      for (uint32_t p = s; p != kNoVertex; p = v.dup_next[p]) {
+        if (v.ext_of_int[p] != it.self) entries[j++] = {p, d2};
+      }
+    });
+  }
+};
+
+// Entry a before entry b: by row, then the exact order of core/queries.h
+// (distance from the row's query with exact near-ties, then external id).
+struct EntryBefore {
+  TriangulationView v;
+  const QueryItem* qs;
+  const KnnEntry* entries;
+  const uint32_t* rows;
+  KINETRI_HD bool operator()(uint32_t a, uint32_t b) const {
+    if (rows[a] != rows[b]) return rows[a] < rows[b];
+    const Vec2& q = qs[rows[a]].q;
+    const KnnEntry& x = entries[a];
+    const KnnEntry& y = entries[b];
+    const int c =
+        CompareCloserCached(q, v.pos[x.point], x.d2, v.pos[y.point], y.d2);
+    return c < 0 || (c == 0 && v.ext_of_int[x.point] < v.ext_of_int[y.point]);
+  }
+};
+
+// Output entry j from entries[order[j]] (order may be null: identity).
+struct WriteEntries {
+  const uint32_t* ext_of_int;
+  const KnnEntry* entries;
+  const uint32_t* order;
+  uint32_t* ids;
+  double* dist;  // null: no distances
+  KINETRI_HD void operator()(uint64_t j) const {
+    const KnnEntry& e = entries[order != nullptr ? order[j] : j];
+    ids[j] = ext_of_int[e.point];
+    if (dist != nullptr) dist[j] = sqrt(e.d2);
+  }
+};
+
+// k-NN slots to CSR entries.
+struct CompactKnn {
+  const uint32_t* ext_of_int;
+  const KnnEntry* slots;
+  uint32_t k;
+  const uint64_t* offsets;
+  uint32_t* ids;
+  double* dist;
+  KINETRI_HD void operator()(uint32_t i) const {
+    const KnnEntry* row = slots + uint64_t{i} * k;
+    for (uint64_t j = offsets[i]; j < offsets[i + 1]; ++j, ++row) {
+      ids[j] = ext_of_int[row->point];
+      dist[j] = sqrt(row->d2);
+    }
+  }
+};
+
+struct AllNearest {
+  TriangulationView v;
+  uint32_t* nn;  // by external id
+  double* dist;
+  KINETRI_HD void operator()(uint32_t in) const {
+    const uint32_t ext = v.ext_of_int[in];
+    uint32_t best;
+    double d;
+    if (NearestOtherPoint(v, in, &best, &d)) {
+      nn[ext] = best;
+      dist[ext] = d;
+    } else {
+      nn[ext] = kNoVertex;
+      dist[ext] = 0.0;
+    }
+  }
+};
+
+template <typename T>
+T* QRaw(qthr::device_vector<T>& v) {
+  return qthr::raw_pointer_cast(v.data());
+}
+
+template <typename T>
+void Download(const qthr::device_vector<T>& from, size_t n, std::vector<T>* to,
+              size_t at) {
+  if (n == 0) return;
+  qthr::copy(from.begin(), from.begin() + n, to->begin() + at);
+}
+
+double SecondsSince(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0)
+      .count();
+}
+
+// Per-call device buffers, reused by later calls (a pool: no allocation
+// per call once the sizes are reached).
+struct Scratch {
+  qthr::device_vector<QueryItem> items;
+  qthr::device_vector<uint32_t> targets, found, rows, order, ids;
+  qthr::device_vector<Vec2> positions;
+  qthr::device_vector<uint64_t> counts, offsets;
+  qthr::device_vector<double> dist;
+  qthr::device_vector<KnnEntry> slots, entries;
+  std::vector<uint64_t> h_offsets;
+  std::vector<uint8_t> h_truncated;
+  std::vector<uint32_t> h_found;
+  uint64_t bytes() const {
+    return items.capacity() * sizeof(QueryItem) +
+           (targets.capacity() + found.capacity() + rows.capacity() +
+            order.capacity() + ids.capacity()) *
+               sizeof(uint32_t) +
+           positions.capacity() * sizeof(Vec2) +
+           (counts.capacity() + offsets.capacity()) * sizeof(uint64_t) +
+           dist.capacity() * sizeof(double) +
+           (slots.capacity() + entries.capacity()) * sizeof(KnnEntry);
+  }
+};
+
+// The device copy of a query view and the queries over it.
+class QueryEngine {
+ public:
+  absl::StatusOr<NeighborLists> Run(const TriangulationView& host,
+                                    uint64_t generation, const DeviceQuery& q,
+                                    bool large_blocks) {
+    Refresh(host, generation);
+    switch (q.kind) {
+      case DeviceQuery::Kind::kAllNearest:
+        return AllNearestRows();
+      case DeviceQuery::Kind::kKNearest:
+      case DeviceQuery::Kind::kRadius:
+        return Rows(q, large_blocks);
+    }
+    return absl::InternalError("unknown device query kind");
+  }
+
+  uint64_t bytes() const {
+    std::lock_guard<std::mutex> lock(mu_);
+    uint64_t words = 0;
+    for (const auto* v : {&ext_of_int_, &int_of_ext_, &rep_, &dup_next_,
+                          &sites_, &line_, &line_rank_, &adj_offsets_, &adj_,
+                          &member_offsets_, &members_, &hint_cells_}) {
+      words += v->capacity();
+    }
+    uint64_t bytes = words * sizeof(uint32_t) + pos_.capacity() * sizeof(Vec2);
+    for (const Scratch* w : free_) bytes += w->bytes();  // idle ones
+    return bytes;
+  }
+
+ private:
+  using U32 = qthr::device_vector<uint32_t>;
+
+  // Uploads the view when its generation changed (concurrent callers of one
+  // generation wait for a single upload).
+  void Refresh(const TriangulationView& h, uint64_t generation) {
+    std::lock_guard<std::mutex> lock(mu_);
+    if (valid_ && generation_ == generation) return;
+    valid_ = false;
+    const uint32_t n = h.num_points;
+    auto up = [](auto& to, const auto* from, size_t count) {
+      if (from == nullptr) count = 0;
+      to.assign(from, from + count);
+    };
+    up(pos_, h.pos, n);
+    up(ext_of_int_, h.ext_of_int, n);
+    up(int_of_ext_, h.int_of_ext, n);
+    up(rep_, h.rep, n);
+    up(dup_next_, h.dup_next, n);
+    up(sites_, h.sites, h.num_sites);
+    const bool planar = h.planar();
+    up(line_, planar ? nullptr : h.line, h.num_sites);
+    up(line_rank_, planar ? nullptr : h.line_rank, n);
+    up(adj_offsets_, h.adj_offsets, h.adj_offsets ? size_t{n} + 1 : 0);
+    up(adj_, h.adj, h.adj_offsets ? h.adj_offsets[n] : 0);
+    up(member_offsets_, h.site_member_offsets,
+       h.site_member_offsets ? size_t{n} + 1 : 0);
+    up(members_, h.site_members,
+       h.site_member_offsets ? h.site_member_offsets[n] : 0);
+    // Position queries start their walks from the coarse hint grid.
+    hints_ = HintGridView{};
+    hint_cells_.clear();
+    if (h.num_sites > 0) {
+      const HintGrid grid(h);
+      hints_ = grid.view();
+      up(hint_cells_, grid.cells().data(), grid.cells().size());
+      hints_.cells = QRaw(hint_cells_);
+    }
+    TriangulationView& d = view_;
+    d = h;
+    d.pos = QRaw(pos_);
+    d.ext_of_int = QRaw(ext_of_int_);
+    d.int_of_ext = QRaw(int_of_ext_);
+    d.rep = QRaw(rep_);
+    d.dup_next = QRaw(dup_next_);
+    d.sites = QRaw(sites_);
+    // The searches read the neighbour rows, never the mesh.
+    d.mesh.origin = nullptr;
+    d.mesh.twin = nullptr;
+    d.vertex_edge = nullptr;
+    d.line = planar ? nullptr : QRaw(line_);
+    d.line_rank = planar ? nullptr : QRaw(line_rank_);
+    d.adj_offsets = h.adj_offsets ? QRaw(adj_offsets_) : nullptr;
+    d.adj = h.adj_offsets ? QRaw(adj_) : nullptr;
+    d.site_member_offsets =
+        h.site_member_offsets ? QRaw(member_offsets_) : nullptr;
+    d.site_members = h.site_member_offsets ? QRaw(members_) : nullptr;
+    generation_ = generation;
+    valid_ = true;
+  }
+
+  absl::StatusOr<NeighborLists> AllNearestRows() {
+    const uint32_t n = view_.num_points;
+    NeighborLists out;
+    out.offsets.assign(size_t{n} + 1, 0);
+    out.truncated.assign(n, 0);
+    if (n == 0) return out;
+    U32 nn(n);
+    qthr::device_vector<double> dist(n);
+    qthr::for_each(qthr::counting_iterator<uint32_t>(0),
+                   qthr::counting_iterator<uint32_t>(n),
+                   AllNearest{view_, QRaw(nn), QRaw(dist)});
+    std::vector<uint32_t> h_nn(n);
+    std::vector<double> h_dist(n);
+    Download(nn, n, &h_nn, 0);
+    Download(dist, n, &h_dist, 0);
+    for (uint32_t i = 0; i < n; ++i) {
+      out.offsets[i + 1] = out.offsets[i] + (h_nn[i] != kNoVertex ? 1 : 0);
+    }
+    out.ids.reserve(out.offsets[n]);
+    out.distances.reserve(out.offsets[n]);
+    for (uint32_t i = 0; i < n; ++i) {
+      if (h_nn[i] == kNoVertex) continue;
+      out.ids.push_back(h_nn[i]);
+      out.distances.push_back(h_dist[i]);
+    }
+    return out;
+  }
+
+  // Scratch for one call (from the pool, or new).
+  Scratch* Acquire() {
+    std::lock_guard<std::mutex> lock(mu_);
+    if (!free_.empty()) {
+      Scratch* s = free_.back();
+      free_.pop_back();
+      return s;
+    }
+    scratch_.push_back(std::make_unique<Scratch>());
+    return scratch_.back().get();
+  }
+  void Release(Scratch* s) {
+    std::lock_guard<std::mutex> lock(mu_);
+    free_.push_back(s);
+  }
+
+  // k-NN and radius rows, block by block.
+  absl::StatusOr<NeighborLists> Rows(const DeviceQuery& q, bool large_blocks) {
+    const size_t nq = q.size();
+    NeighborLists out;
+    out.offsets.assign(nq + 1, 0);
+    out.truncated.assign(nq, 0);
+    if (nq == 0 || view_.num_sites == 0) return out;
+    Scratch* scratch = Acquire();
+    absl::Status status = RowsWith(q, large_blocks, *scratch, &out);
+    Release(scratch);
+    if (!status.ok()) return status;
+    return out;
+  }
+
+  absl::Status RowsWith(const DeviceQuery& q, bool large_blocks, Scratch& w,
+                        NeighborLists* out) {
+    const size_t nq = q.size();
+    const bool knn = q.kind == DeviceQuery::Kind::kKNearest;
+    const bool distances = knn || q.rows.distances;
+    const uint64_t limit = q.limits.max_total_results;
+    const CancelToken* cancel = q.limits.cancel;
+    // k-NN slots per block stay within kMaxSlotBytes.
+    const uint32_t kk =
+        knn ? std::min<uint32_t>(q.k, view_.num_points) : uint32_t{0};
+    const size_t max_block_memory =
+        knn ? std::max<size_t>(1, kMaxSlotBytes / (sizeof(KnnEntry) * kk))
+            : SIZE_MAX;
+    const size_t max_block = std::min(
+        max_block_memory, large_blocks ? kMaxBlockLarge : kMaxBlockSmall);
+    size_t block = std::min<size_t>(kFirstBlock, max_block);
+    uint64_t total = 0;
+    for (size_t begin = 0; begin < nq;) {
+      if (cancel != nullptr) {
+        if (absl::Status s = cancel->Check("query"); !s.ok()) return s;
+      }
+      const auto t0 = std::chrono::steady_clock::now();
+      const uint32_t nb = static_cast<uint32_t>(std::min(block, nq - begin));
+      Prepare(q, begin, nb, w);
+      const uint64_t remaining = limit ? limit - total : UINT64_MAX;
+      const uint64_t rows_total =
+          knn ? KnnBlock(kk, nb, w) : RadiusBlock(q, nb, remaining, w);
+      if (limit && rows_total > remaining) return ResultLimitError(limit);
+      // Append the block's rows.
+      for (uint32_t i = 0; i < nb; ++i) {
+        out->offsets[begin + i + 1] = total + w.h_offsets[i + 1];
+        out->truncated[begin + i] = w.h_truncated[i];
+      }
+      out->ids.resize(total + rows_total);
+      Download(w.ids, rows_total, &out->ids, total);
+      if (distances) {
+        out->distances.resize(total + rows_total);
+        Download(w.dist, rows_total, &out->distances, total);
+      }
+      total += rows_total;
+      begin += nb;
+      // Next block: about kBlockTargetSeconds of work.
+      const double s = SecondsSince(t0);
+      if (s < kBlockTargetSeconds / 2) {
+        block = std::min(block * 2, max_block);
+      } else if (s > kBlockTargetSeconds * 2 && block > 1) {
+        block = std::max<size_t>(1, block / 2);
+      }
+    }
+    return absl::OkStatus();
+  }
+
+  // Queries [begin, begin + nb) of q into w.items.
+  void Prepare(const DeviceQuery& q, size_t begin, uint32_t nb, Scratch& w) {
+    w.items.resize(nb);
+    const qthr::counting_iterator<uint32_t> first(0), last(nb);
+    if (q.by_ids) {
+      w.targets.assign(q.ids.begin() + begin, q.ids.begin() + begin + nb);
+      qthr::for_each(
+          first, last,
+          PrepareIds{view_, QRaw(w.targets), q.exclude_self, QRaw(w.items)});
+    } else {
+      w.positions.assign(q.positions.begin() + begin,
+                         q.positions.begin() + begin + nb);
+      qthr::for_each(
+          first, last,
+          PreparePositions{view_, hints_, QRaw(w.positions), QRaw(w.items)});
+    }
+  }
+
+  // w.counts[0..nb) -> w.offsets (exclusive scan) and w.h_offsets; returns
+  // the block's total.
+  static uint64_t ScanCounts(uint32_t nb, Scratch& w) {
+    w.counts.resize(size_t{nb} + 1);
+    w.counts[nb] = 0;
+    w.offsets.resize(size_t{nb} + 1);
+    qthr::exclusive_scan(w.counts.begin(), w.counts.end(), w.offsets.begin());
+    w.h_offsets.resize(size_t{nb} + 1);
+    qthr::copy(w.offsets.begin(), w.offsets.end(), w.h_offsets.begin());
+    return w.h_offsets[nb];
+  }
+
+  uint64_t KnnBlock(uint32_t kk, uint32_t nb, Scratch& w) {
+    w.slots.resize(uint64_t{kk} * nb);
+    w.counts.resize(size_t{nb} + 1);
+    qthr::for_each(
+        qthr::counting_iterator<uint32_t>(0),
+        qthr::counting_iterator<uint32_t>(nb),
+        KnnRows{view_, QRaw(w.items), kk, QRaw(w.slots), QRaw(w.counts)});
+    const uint64_t total = ScanCounts(nb, w);
+    w.h_truncated.assign(nb, 0);
+    w.ids.resize(total);
+    w.dist.resize(total);
+    qthr::for_each(qthr::counting_iterator<uint32_t>(0),
+                   qthr::counting_iterator<uint32_t>(nb),
+                   CompactKnn{QRaw(ext_of_int_), QRaw(w.slots), kk,
+                              QRaw(w.offsets), QRaw(w.ids), QRaw(w.dist)});
+    return total;
+  }
+
+  // Returns the block's total; more than `remaining` means refused (the
+  // rows are then not filled).
+  uint64_t RadiusBlock(const DeviceQuery& q, uint32_t nb, uint64_t remaining,
+                       Scratch& w) {
+    uint64_t cap = UINT32_MAX;
+    if (q.max_results != 0) cap = uint64_t{q.max_results} + 1;
+    if (remaining != UINT64_MAX) cap = std::min(cap, remaining + 1);
+    w.found.resize(nb);
+    w.counts.resize(size_t{nb} + 1);
+    qthr::for_each(
+        qthr::counting_iterator<uint32_t>(0),
+        qthr::counting_iterator<uint32_t>(nb),
+        RadiusCounts{view_, QRaw(w.items), q.radius, q.max_results,
+                     static_cast<uint32_t>(std::min<uint64_t>(cap, UINT32_MAX)),
+                     QRaw(w.found), QRaw(w.counts)});
+    const uint64_t total = ScanCounts(nb, w);
+    if (total > remaining) return total;
+    w.h_found.resize(nb);
+    qthr::copy(w.found.begin(), w.found.end(), w.h_found.begin());
+    w.h_truncated.resize(nb);
+    for (uint32_t i = 0; i < nb; ++i) {
+      w.h_truncated[i] = q.max_results != 0 && w.h_found[i] > q.max_results;
+    }
+    w.entries.resize(total);
+    w.rows.resize(total);
+    qthr::for_each(
+        qthr::counting_iterator<uint32_t>(0),
+        qthr::counting_iterator<uint32_t>(nb),
+        RadiusFill{view_, QRaw(w.items), q.radius, q.max_results, QRaw(w.found),
+                   QRaw(w.offsets), QRaw(w.entries), QRaw(w.rows)});
+    // Closest first: one sort by (row, exact order). Otherwise rows stay in
+    // traversal order (cut rows, from the k-NN search, are in order).
+    const uint32_t* order = nullptr;
+    if (q.rows.closest_first) {
+      w.order.resize(total);
+      qthr::sequence(w.order.begin(), w.order.end());
+      qthr::sort(
+          w.order.begin(), w.order.end(),
+          EntryBefore{view_, QRaw(w.items), QRaw(w.entries), QRaw(w.rows)});
+      order = QRaw(w.order);
+    }
+    w.ids.resize(total);
+    w.dist.resize(q.rows.distances ? total : 0);
+    qthr::for_each(
+        qthr::counting_iterator<uint64_t>(0),
+        qthr::counting_iterator<uint64_t>(total),
+        WriteEntries{QRaw(ext_of_int_), QRaw(w.entries), order, QRaw(w.ids),
+                     q.rows.distances ? QRaw(w.dist) : nullptr});
+    return total;
+  }
+
+  // First block of a batch; blocks then double while they take less than
+  // half the target, up to the largest size (GPUs need many queries in
+  // flight; CPU threads few).
+  static constexpr size_t kFirstBlock = 2;
+  static constexpr size_t kMaxBlockSmall = size_t{1} << 14;
+  static constexpr size_t kMaxBlockLarge = size_t{1} << 20;
+  static constexpr double kBlockTargetSeconds = 0.008;
+  static constexpr size_t kMaxSlotBytes = size_t{64} << 20;
+
+  mutable std::mutex mu_;
+  bool valid_ = false;
+  uint64_t generation_ = 0;
+  TriangulationView view_;
+  HintGridView hints_;
+  qthr::device_vector<Vec2> pos_;
+  U32 ext_of_int_, int_of_ext_, rep_, dup_next_, sites_, line_, line_rank_,
+      adj_offsets_, adj_, member_offsets_, members_, hint_cells_;
+  // Scratch of calls in flight and of calls done (kept for the next ones).
+  std::vector<std::unique_ptr<Scratch>> scratch_;
+  std::vector<Scratch*> free_;
+};
+
+}  // namespace
+}  // namespace KINETRI_DEVICE_NS
+}  // namespace kinetri::core::device

@@ -1,0 +1,57 @@
+// What a batched proximity query returns and what bounds it, shared by
+// every query executor (core/queries.h on the host, the device executor's
+// queries in core/device/): rows in CSR form, the row options and the
+// limits, and the one refusal a passed limit gets.
+#ifndef KINETRI_CORE_QUERY_TYPES_H_
+#define KINETRI_CORE_QUERY_TYPES_H_
+
+#include <cstddef>
+#include <cstdint>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "core/cancel.h"
+
+namespace kinetri::core {
+
+// Compressed sparse rows: the neighbours of query i are
+// ids[offsets[i] .. offsets[i+1]) with matching distances, closest first.
+struct NeighborLists {
+  std::vector<uint64_t> offsets;   // size = queries + 1
+  std::vector<uint32_t> ids;       // external point ids
+  std::vector<double> distances;   // Euclidean, rounded to double
+  std::vector<uint8_t> truncated;  // per query: max_results cut the row
+
+  size_t num_queries() const {
+    return offsets.empty() ? 0 : offsets.size() - 1;
+  }
+  size_t row_size(size_t i) const { return offsets[i + 1] - offsets[i]; }
+};
+
+// What radius rows carry. The closest-first order costs a sort per row and
+// the distances a square root per result; callers that need only the set of
+// neighbours ("who is within r of whom") can drop either. Rows cut by
+// max_results are always the closest points, whatever the order asked for.
+struct RowOptions {
+  bool closest_first = true;  // false: rows in traversal order
+  bool distances = true;      // false: NeighborLists::distances stays empty
+};
+
+struct QueryLimits {
+  // Total results above this fail with RESOURCE_EXHAUSTED (0 = no limit).
+  // The limit is checked while rows are built (a row stops as soon as it
+  // would pass it), so a refused query costs about the limit, not its
+  // answer.
+  uint64_t max_total_results = 0;
+  // Polled per row and every few thousand sites inside a row; when it fires
+  // the query stops and returns CANCELLED or DEADLINE_EXCEEDED.
+  const CancelToken* cancel = nullptr;
+};
+
+// RESOURCE_EXHAUSTED for a query whose rows passed max_total_results: the
+// same message from every executor.
+absl::Status ResultLimitError(uint64_t max_total_results);
+
+}  // namespace kinetri::core
+
+#endif  // KINETRI_CORE_QUERY_TYPES_H_
