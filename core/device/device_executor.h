@@ -126,6 +126,9 @@ class DeviceExecutor {
 // tests/core/device_executor_test.cc). Used for admission before anything
 // is allocated.
 inline constexpr uint64_t kDeviceBytesPerPoint = 256;
+// Query scratch kept between queries, per query running at once (larger
+// buffers are freed when their query ends). Checked with the above.
+inline constexpr uint64_t kDeviceQueryScratchBytes = uint64_t{8} << 20;
 
 // Whether this build has the backend, and (kCuda) a GPU to run it.
 bool DeviceBackendAvailable(DeviceBackend backend);

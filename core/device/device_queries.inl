@@ -394,6 +394,8 @@ class QueryEngine {
     return scratch_.back().get();
   }
   void Release(Scratch* s) {
+    // A big answer's buffers are not kept (kDeviceQueryScratchBytes).
+    if (s->bytes() > kDeviceQueryScratchBytes) *s = Scratch{};
     std::lock_guard<std::mutex> lock(mu_);
     free_.push_back(s);
   }

@@ -12,6 +12,7 @@
 #include <random>
 #include <vector>
 
+#include "core/queries.h"
 #include "core/triangulation.h"
 #include "tests/core/test_util.h"
 
@@ -121,6 +122,18 @@ TEST(DeviceExecutor, MeshStaysResidentAcrossSteps) {
                 double(t->device_bytes()) / n);
     EXPECT_LE(t->device_bytes(), device::kDeviceBytesPerPoint * n);
   }
+  // And with the query view on the device (after all-NN and an 8-NN query
+  // of every point, whose scratch stays for the next queries).
+  auto all = AllNearestNeighbors(*t);
+  ASSERT_TRUE(all.ok()) << all.status();
+  std::vector<uint32_t> ids(n);
+  for (uint32_t i = 0; i < n; ++i) ids[i] = i;
+  auto knn = KNearestOfPoints(*t, ids, 8, true);
+  ASSERT_TRUE(knn.ok()) << knn.status();
+  std::printf("with queries: %.1f device bytes per point\n",
+              double(t->device_bytes()) / n);
+  EXPECT_LE(t->device_bytes(), device::kDeviceBytesPerPoint * n +
+                                   device::kDeviceQueryScratchBytes);
 }
 
 // Sparse steps (few points move) go through the candidate list; the result
