@@ -58,6 +58,10 @@ ABSL_FLAG(double, engine_budget_s, 0,
           "passes this many seconds (0: 3 quick, 90 full); its record then "
           "says how many steps it ran");
 ABSL_FLAG(int, query_points, 100000, "arbitrary query points per step");
+ABSL_FLAG(std::string, radius_plan, "auto",
+          "how Kinetri's radius queries find the sites of a disk: auto (by "
+          "the expected sites per disk), graph (walk the Delaunay graph) or "
+          "cells (a cell index of side r built per query batch)");
 ABSL_FLAG(std::string, engines, "",
           "comma-separated engines to run (default: all of kinetri, "
           "kinetri-1t, kinetri-rounds, kinetri-device, cgal-rebuild, "
@@ -288,6 +292,15 @@ int main(int argc, char** argv) {
                                          : (quick ? 3.0 : 90.0));
   const size_t num_queries =
       static_cast<size_t>(std::max(0, absl::GetFlag(FLAGS_query_points)));
+  kc::RowOptions::Plan radius_plan = kc::RowOptions::Plan::kAuto;
+  if (absl::GetFlag(FLAGS_radius_plan) == "graph") {
+    radius_plan = kc::RowOptions::Plan::kGraph;
+  } else if (absl::GetFlag(FLAGS_radius_plan) == "cells") {
+    radius_plan = kc::RowOptions::Plan::kCells;
+  } else if (absl::GetFlag(FLAGS_radius_plan) != "auto") {
+    std::fprintf(stderr, "--radius_plan must be auto, graph or cells\n");
+    return 2;
+  }
   std::set<std::string> engines = {
       "kinetri",        "kinetri-1t",   "kinetri-rounds",
       "kinetri-device", "cgal-rebuild", "cgal-move",
@@ -477,6 +490,7 @@ int main(int argc, char** argv) {
           kc::RowOptions set_only;
           set_only.closest_first = false;
           set_only.distances = false;
+          set_only.plan = radius_plan;
           t0 = Clock::now();
           auto q8 =
               kc::WithinRadiusOfPoints(*t, all, r8, true, 0, {}, set_only);

@@ -5,10 +5,12 @@
 #include <atomic>
 #include <cmath>
 #include <cstdint>
+#include <optional>
 #include <queue>
 
 #include "absl/container/flat_hash_set.h"
 #include "absl/strings/str_cat.h"
+#include "core/cell_index.h"
 #include "core/hint_grid.h"
 #include "core/parallel.h"
 #include "core/predicates.h"
@@ -388,76 +390,156 @@ absl::StatusOr<NeighborLists> KNearestImpl(const Triangulation& t,
       });
 }
 
+// Disks expected to hold at least this many sites are scanned in a cell
+// index (RowOptions::Plan::kAuto); below, the graph walk visits fewer
+// candidates than the nine cells around the query hold.
+constexpr double kCellsMinSitesPerDisk = 3.0;
+
+// The cell index a radius batch scans, or null when the plan (or the
+// expected disk size) says: walk the graph.
+std::optional<CellIndex> RadiusCells(const Triangulation& t, double r,
+                                     size_t num_queries, RowOptions options) {
+  using Plan = RowOptions::Plan;
+  if (options.plan == Plan::kGraph || !t.is_planar() || !(r > 0.0) ||
+      num_queries == 0) {
+    return std::nullopt;
+  }
+  const TriangulationView v = t.view();
+  std::optional<CellIndex> cells;
+  // At most about four cells per site (the index's memory stays O(n)).
+  const size_t max_cells = 4 * size_t{v.num_sites} + 64;
+  t.Run([&] { cells = CellIndex::Build(v, r, max_cells); });
+  if (!cells || options.plan == Plan::kCells) return cells;
+  // kAuto: sites per disk expected from the mean density over the cells.
+  const double per_disk =
+      double(v.num_sites) / double(cells->num_cells()) * 3.14159;
+  if (per_disk < kCellsMinSitesPerDisk) return std::nullopt;
+  return cells;
+}
+
 absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
                                          const std::vector<Query>& queries,
                                          double r, uint32_t max_results,
                                          QueryLimits limits,
                                          RowOptions options) {
   if (absl::Status s = CheckRadius(r); !s.ok()) return s;
+  const std::optional<CellIndex> index =
+      RadiusCells(t, r, queries.size(), options);
+  const CellIndex* cells = index ? &*index : nullptr;
   return RunRows(
       t, queries, limits, options.distances,
-      [r, max_results, options](const TriangulationView& v, const Query& q,
-                                uint32_t root, const RowBudget& budget,
-                                std::vector<Hit>& out) -> int {
+      [r, max_results, options, cells](
+          const TriangulationView& v, const Query& q, uint32_t root,
+          const RowBudget& budget, std::vector<Hit>& out) -> int {
         if (CompareDistanceToRadius(q.q, v.pos[root], r) > 0) {
           return kRowComplete;
         }
-        // Breadth-first over Delaunay neighbours inside the disk,
-        // from the first site. Visited marks are per-thread epoch
-        // stamps: a constant time check, never a scan. Squared
-        // distances in double decide clear cases, exact predicates
-        // the boundary and near-ties.
-        const VisitMarks::Search marks = VisitMarks::Begin(v.num_points);
         auto& found = Scratch<std::pair<double, uint32_t>>();
         found.clear();
-        found.push_back({SquaredDistance(q.q, v.pos[root]), root});
-        marks.Visit(root);
         const double rr = r * r;
         // A row cut at max_results holds the closest max_results points:
         // once the disk holds clearly more sites than that, the k-nearest
         // expansion finds them with work bounded by max_results instead.
         const size_t knn_switch =
             max_results ? 4 * size_t{max_results} + 1024 : SIZE_MAX;
-        for (size_t head = 0; head < found.size(); ++head) {
-          if (found.size() > knn_switch) {
-            out.clear();
-            const int end =
-                KnnRow(v, q, root, size_t{max_results} + 1, budget, out);
-            if (end != kRowComplete) return end;
-            size_t keep = 0;
-            while (keep < out.size() &&
-                   CompareDistanceToRadius(
-                       q.q, v.pos[v.int_of_ext[out[keep].ext]], r) <= 0) {
-              ++keep;
-            }
-            out.resize(keep);
-            if (!options.distances) {
-              for (Hit& h : out) h.dist = 0.0;
-            }
-            if (out.size() > max_results) {
-              out.resize(max_results);
-              return kRowTruncated;
-            }
-            return kRowComplete;
+        auto cut_by_knn = [&]() -> int {
+          out.clear();
+          const int end =
+              KnnRow(v, q, root, size_t{max_results} + 1, budget, out);
+          if (end != kRowComplete) return end;
+          size_t keep = 0;
+          while (keep < out.size() &&
+                 CompareDistanceToRadius(
+                     q.q, v.pos[v.int_of_ext[out[keep].ext]], r) <= 0) {
+            ++keep;
           }
-          // Every site but the query's own emits a point.
-          if (found.size() - 1 > budget.cap) return kRowOverBudget;
-          if (head % RowBudget::kPollEvery == RowBudget::kPollEvery - 1 &&
-              budget.Cancelled()) {
-            return kRowCancelled;
+          out.resize(keep);
+          if (!options.distances) {
+            for (Hit& h : out) h.dist = 0.0;
           }
-          const uint32_t u = found[head].second;
-          for (const uint32_t* it = v.RowBegin(u); it != v.RowEnd(u); ++it) {
-            const uint32_t w = *it;
-            if (!marks.Visit(w)) continue;
-            const double dw = SquaredDistance(q.q, v.pos[w]);
-            const double tol = internal::kDistErrBound * (dw + rr);
-            if (dw > rr + tol) continue;
-            if (!(dw < rr - tol) &&
-                CompareDistanceToRadius(q.q, v.pos[w], r) > 0) {
-              continue;
+          if (out.size() > max_results) {
+            out.resize(max_results);
+            return kRowTruncated;
+          }
+          return kRowComplete;
+        };
+        // Sites in the disk: squared distances in double decide clear
+        // cases, exact predicates the boundary and near-ties.
+        auto in_disk = [&](const Vec2& p, double d2) {
+          const double tol = internal::kDistErrBound * (d2 + rr);
+          if (d2 > rr + tol) return false;
+          return d2 < rr - tol || CompareDistanceToRadius(q.q, p, r) <= 0;
+        };
+        if (cells != nullptr) {
+          // Scan the cells around q. Rows in traversal order are written
+          // as the sites are found (the index holds the external ids of
+          // single-point sites next to their positions).
+          int end = kRowComplete;
+          uint32_t scanned = 0;
+          bool knn = false;
+          const bool direct = !options.closest_first;
+          out.clear();
+          cells->ForEachCandidate(
+              q.q, r, [&](uint32_t w, const Vec2& p, uint32_t ext) {
+                if (++scanned % RowBudget::kPollEvery == 0 &&
+                    budget.Cancelled()) {
+                  end = kRowCancelled;
+                  return false;
+                }
+                const double dw = SquaredDistance(q.q, p);
+                if (!in_disk(p, dw)) return true;
+                // Rows written directly need the sites only when they may
+                // be cut (and then sorted).
+                if (!direct || max_results != 0) found.push_back({dw, w});
+                if (direct) {
+                  if (ext == kNoVertex) {
+                    EmitSite(v, w, q.q, q.self_ext, out, options.distances);
+                  } else if (ext != q.self_ext) {
+                    out.push_back(
+                        {ext, options.distances ? std::sqrt(dw) : 0.0});
+                  }
+                }
+                if (found.size() > knn_switch) {
+                  knn = true;
+                  return false;
+                }
+                // Every site but the query's own emits a point.
+                if ((direct ? out.size() : found.size() - 1) > budget.cap) {
+                  end = kRowOverBudget;
+                  return false;
+                }
+                return true;
+              });
+          if (end != kRowComplete) return end;
+          if (knn) return cut_by_knn();
+          if (direct) {
+            if (max_results == 0 || out.size() <= max_results) {
+              return kRowComplete;
             }
-            found.push_back({dw, w});
+            out.clear();  // cut: the closest points, sorted below
+          }
+        } else {
+          // Breadth-first over Delaunay neighbours inside the disk, from
+          // the first site. Visited marks are per-thread epoch stamps: a
+          // constant time check, never a scan.
+          const VisitMarks::Search marks = VisitMarks::Begin(v.num_points);
+          found.push_back({SquaredDistance(q.q, v.pos[root]), root});
+          marks.Visit(root);
+          for (size_t head = 0; head < found.size(); ++head) {
+            if (found.size() > knn_switch) return cut_by_knn();
+            // Every site but the query's own emits a point.
+            if (found.size() - 1 > budget.cap) return kRowOverBudget;
+            if (head % RowBudget::kPollEvery == RowBudget::kPollEvery - 1 &&
+                budget.Cancelled()) {
+              return kRowCancelled;
+            }
+            const uint32_t u = found[head].second;
+            for (const uint32_t* it = v.RowBegin(u); it != v.RowEnd(u); ++it) {
+              const uint32_t w = *it;
+              if (!marks.Visit(w)) continue;
+              const double dw = SquaredDistance(q.q, v.pos[w]);
+              if (in_disk(v.pos[w], dw)) found.push_back({dw, w});
+            }
           }
         }
         if (!options.closest_first) {

@@ -35,6 +35,14 @@ struct NeighborLists {
 struct RowOptions {
   bool closest_first = true;  // false: rows in traversal order
   bool distances = true;      // false: NeighborLists::distances stays empty
+  // How the host executors find the sites in a disk (same answers either
+  // way): kAuto picks by the expected number of neighbours per disk;
+  // kGraph walks the Delaunay graph from the nearest site; kCells scans a
+  // cell index of side r built for the call (contiguous memory: faster
+  // once disks hold more than a few sites). The device executor always
+  // walks the graph.
+  enum class Plan { kAuto, kGraph, kCells };
+  Plan plan = Plan::kAuto;
 };
 
 struct QueryLimits {

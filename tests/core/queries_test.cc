@@ -111,6 +111,21 @@ void CheckAllQueries(const std::vector<Vec2>& pts, uint64_t seed) {
         if (cap && want.size() > cap) want.resize(cap);
         ASSERT_EQ(Row(*resp, i), want) << "FRNN of point " << ids[i];
       }
+      // Both ways of finding the sites of a disk (the graph walk and the
+      // cell index) give these rows exactly.
+      for (auto plan : {RowOptions::Plan::kGraph, RowOptions::Plan::kCells}) {
+        RowOptions forced;
+        forced.plan = plan;
+        auto alt = WithinRadius(*t, qs, r, cap, {}, forced);
+        auto alt_p = WithinRadiusOfPoints(*t, ids, r, true, cap, {}, forced);
+        ASSERT_TRUE(alt.ok() && alt_p.ok());
+        for (auto [got, ref] : {std::pair{&*alt, &*res}, {&*alt_p, &*resp}}) {
+          EXPECT_EQ(got->offsets, ref->offsets) << "plan r=" << r;
+          EXPECT_EQ(got->ids, ref->ids) << "plan r=" << r;
+          EXPECT_EQ(got->distances, ref->distances) << "plan r=" << r;
+          EXPECT_EQ(got->truncated, ref->truncated) << "plan r=" << r;
+        }
+      }
       // Set-only rows (traversal order, no distances): the same points;
       // rows cut by the cap are still the closest ones, closest first.
       RowOptions set_only;
@@ -235,16 +250,20 @@ TEST(Queries, TotalLimitStopsTheWork) {
   std::iota(ids.begin(), ids.end(), 0u);
   QueryLimits limits;
   limits.max_total_results = 50000;
-  const auto t0 = std::chrono::steady_clock::now();
-  auto r = WithinRadiusOfPoints(*t, ids, 10.0, false, 0, limits);
-  const double s =
-      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0)
-          .count();
-  EXPECT_EQ(r.status().code(), absl::StatusCode::kResourceExhausted);
-  EXPECT_NE(r.status().message().find("50000"), std::string::npos);
-  // The whole answer (10^8 results) takes tens of seconds; the refusal
-  // builds at most a few rows of 10^4.
-  EXPECT_LT(s, 2.0);
+  for (auto plan : {RowOptions::Plan::kGraph, RowOptions::Plan::kCells}) {
+    RowOptions rows;
+    rows.plan = plan;
+    const auto t0 = std::chrono::steady_clock::now();
+    auto r = WithinRadiusOfPoints(*t, ids, 10.0, false, 0, limits, rows);
+    const double s =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - t0)
+            .count();
+    EXPECT_EQ(r.status().code(), absl::StatusCode::kResourceExhausted);
+    EXPECT_NE(r.status().message().find("50000"), std::string::npos);
+    // The whole answer (10^8 results) takes tens of seconds; the refusal
+    // builds at most a few rows of 10^4.
+    EXPECT_LT(s, 2.0);
+  }
   // Exactly at the limit is allowed.
   limits.max_total_results = 10000;
   auto ok = WithinRadiusOfPoints(*t, std::vector<uint32_t>{1}, 10.0, false, 0,
@@ -327,25 +346,29 @@ TEST(Queries, CancellationStopsTheWork) {
         absl::StatusCode::kDeadlineExceeded);
   }
   // The whole answer (20000 rows of ~20000) takes far longer than the
-  // 100 ms after which the token fires.
-  std::atomic<bool> flag{false};
-  CancelToken token([&] { return flag.load(); });
-  QueryLimits limits;
-  limits.cancel = &token;
-  std::chrono::steady_clock::time_point fired;
-  std::thread canceller([&] {
-    std::this_thread::sleep_for(std::chrono::milliseconds(100));
-    fired = std::chrono::steady_clock::now();
-    flag = true;
-  });
-  auto r = WithinRadiusOfPoints(*t, ids, 10.0, true, 0, limits);
-  const auto done = std::chrono::steady_clock::now();
-  canceller.join();
-  EXPECT_EQ(r.status().code(), absl::StatusCode::kCancelled);
-  const double stop_ms =
-      std::chrono::duration<double, std::milli>(done - fired).count();
-  std::printf("query stopped %.1f ms after cancellation\n", stop_ms);
-  EXPECT_LT(stop_ms, 50.0 * (std::getenv("KINETRI_SLOW_MACHINE") ? 10 : 1));
+  // 100 ms after which the token fires; both ways of scanning a disk stop.
+  for (auto plan : {RowOptions::Plan::kGraph, RowOptions::Plan::kCells}) {
+    RowOptions rows;
+    rows.plan = plan;
+    std::atomic<bool> flag{false};
+    CancelToken token([&] { return flag.load(); });
+    QueryLimits limits;
+    limits.cancel = &token;
+    std::chrono::steady_clock::time_point fired;
+    std::thread canceller([&] {
+      std::this_thread::sleep_for(std::chrono::milliseconds(100));
+      fired = std::chrono::steady_clock::now();
+      flag = true;
+    });
+    auto r = WithinRadiusOfPoints(*t, ids, 10.0, true, 0, limits, rows);
+    const auto done = std::chrono::steady_clock::now();
+    canceller.join();
+    EXPECT_EQ(r.status().code(), absl::StatusCode::kCancelled);
+    const double stop_ms =
+        std::chrono::duration<double, std::milli>(done - fired).count();
+    std::printf("query stopped %.1f ms after cancellation\n", stop_ms);
+    EXPECT_LT(stop_ms, 50.0 * (std::getenv("KINETRI_SLOW_MACHINE") ? 10 : 1));
+  }
 }
 
 // The executor under test answers exactly as the host's region executor

@@ -1,0 +1,75 @@
+// A uniform grid of square cells over the sites of a triangulation view,
+// built for one batch of radius queries (cell side = the radius): the sites
+// in cell order with their positions copied next to each other, so the
+// candidates of a disk are a few contiguous runs of memory instead of a
+// walk over neighbour rows. Used by the radius queries of core/queries.h
+// when disks hold more than a few sites (RowOptions::Plan).
+#ifndef KINETRI_CORE_CELL_INDEX_H_
+#define KINETRI_CORE_CELL_INDEX_H_
+
+#include <algorithm>
+#include <cmath>
+#include <cstddef>
+#include <cstdint>
+#include <optional>
+#include <vector>
+
+#include "core/triangulation_view.h"
+#include "core/vec2.h"
+
+namespace kinetri::core {
+
+class CellIndex {
+ public:
+  // The index of v's sites with cells of side `cell` (> 0); nullopt when it
+  // would need more than max_cells cells. Sorts in parallel: call inside
+  // the triangulation's thread arena.
+  static std::optional<CellIndex> Build(const TriangulationView& v, double cell,
+                                        size_t max_cells);
+
+  // Calls fn(site, position, ext) for every site whose cell meets the
+  // square [q - r, q + r]^2 (a superset of the sites within r of q,
+  // whatever the rounding); ext is the external id of the site's only
+  // point, or kNoVertex when the site holds several. fn returns false to
+  // stop.
+  template <typename Fn>
+  void ForEachCandidate(const Vec2& q, double r, Fn&& fn) const {
+    // Bounds moved outwards by more than their rounding error, so that no
+    // site of the disk falls outside them.
+    const double slack_x = (std::fabs(q.x) + r) * 0x1p-50;
+    const double slack_y = (std::fabs(q.y) + r) * 0x1p-50;
+    const uint32_t x0 = Cell(q.x - r - slack_x, x0_, nx_);
+    const uint32_t x1 = Cell(q.x + r + slack_x, x0_, nx_);
+    const uint32_t y0 = Cell(q.y - r - slack_y, y0_, ny_);
+    const uint32_t y1 = Cell(q.y + r + slack_y, y0_, ny_);
+    for (uint32_t y = y0; y <= y1; ++y) {
+      // The cells x0..x1 of a row are one contiguous run of slots.
+      const uint32_t b = start_[size_t{y} * nx_ + x0];
+      const uint32_t e = start_[size_t{y} * nx_ + x1 + 1];
+      for (uint32_t s = b; s < e; ++s) {
+        if (!fn(site_[s], pos_[s], ext_[s])) return;
+      }
+    }
+  }
+
+  size_t num_cells() const { return size_t{nx_} * ny_; }
+
+ private:
+  uint32_t Cell(double c, double origin, uint32_t count) const {
+    const double t = (c - origin) * inv_;
+    if (!(t > 0.0)) return 0;
+    if (t >= static_cast<double>(count - 1)) return count - 1;
+    return static_cast<uint32_t>(t);
+  }
+
+  double x0_ = 0.0, y0_ = 0.0, inv_ = 1.0;
+  uint32_t nx_ = 1, ny_ = 1;
+  std::vector<uint32_t> start_;  // cell c: slots start_[c] .. start_[c + 1]
+  std::vector<uint32_t> site_;   // site (internal id) of each slot
+  std::vector<Vec2> pos_;        // its position
+  std::vector<uint32_t> ext_;    // its only point's external id (or none)
+};
+
+}  // namespace kinetri::core
+
+#endif  // KINETRI_CORE_CELL_INDEX_H_
