@@ -29,6 +29,11 @@
 //    each candidate's closest neighbour, a cost quadratic in vertex degree,
 //    and measured 2.8x slower for 32-neighbour radius queries on 10K uniform
 //    points, so the CPU executor uses marks.)
+//    When disks are expected to hold several sites (RowOptions::Plan), the
+//    sites of a disk come instead from a cell index of side r built for the
+//    batch (core/cell_index.h): the cells that meet the disk's bounding
+//    square, scanned in contiguous memory, each site tested with the same
+//    exact predicate. Rows are identical either way.
 #ifndef KINETRI_CORE_QUERIES_H_
 #define KINETRI_CORE_QUERIES_H_
 

@@ -43,6 +43,9 @@ struct RowOptions {
   // walks the graph.
   enum class Plan { kAuto, kGraph, kCells };
   Plan plan = Plan::kAuto;
+  // The whole batch's number of queries when it is asked in blocks (the
+  // server does): kAuto plans for the batch, not for one block.
+  uint64_t batch_queries = 0;
 };
 
 struct QueryLimits {

@@ -15,6 +15,7 @@
 #include <optional>
 
 #include "absl/strings/str_cat.h"
+#include "core/cell_index.h"
 #include "core/cgal_builder.h"
 #include "core/flip_rules.h"
 #include "core/hint_grid.h"
@@ -146,6 +147,10 @@ struct Triangulation::AdjacencyCache {
   std::mutex mu;
   bool valid = false;
   SiteAdjacency rows;
+  // The radius queries' cell index of this step (CachedCellIndex).
+  bool cells_valid = false;
+  double cells_r = 0.0;
+  std::shared_ptr<const CellIndex> cells;
 };
 
 Triangulation::Triangulation(Triangulation&&) noexcept = default;
@@ -280,6 +285,24 @@ TriangulationView Triangulation::view() const {
   v.line = line_.data();
   v.line_rank = line_rank_.data();
   return v;
+}
+
+std::shared_ptr<const CellIndex> Triangulation::CachedCellIndex(
+    double r,
+    const std::function<std::shared_ptr<const CellIndex>()>& make) const {
+  std::lock_guard<std::mutex> lock(adjacency_->mu);
+  if (!adjacency_->cells_valid || adjacency_->cells_r != r) {
+    adjacency_->cells.reset();
+    adjacency_->cells = make();
+    adjacency_->cells_r = r;
+    adjacency_->cells_valid = true;
+  }
+  return adjacency_->cells;
+}
+
+bool Triangulation::HasCachedCellIndex(double r) const {
+  std::lock_guard<std::mutex> lock(adjacency_->mu);
+  return adjacency_->cells_valid && adjacency_->cells_r == r;
 }
 
 TriangulationView Triangulation::query_view() const {
@@ -1328,6 +1351,8 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
   {
     std::lock_guard<std::mutex> lock(adjacency_->mu);
     adjacency_->valid = false;
+    adjacency_->cells_valid = false;
+    adjacency_->cells.reset();
   }
 
   int cancelled = 0;

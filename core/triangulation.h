@@ -60,6 +60,8 @@
 
 namespace kinetri::core {
 
+class CellIndex;
+
 // Which CPU executor repairs the mesh after a move.
 enum class Executor {
   kRegions,  // per-region stacks, one dense pass (core/region_executor.h)
@@ -207,6 +209,16 @@ class Triangulation {
   // built on the first call after a change (in parallel, inside the arena)
   // and reused until the next step; concurrent callers wait for one build.
   TriangulationView query_view() const;
+  // The cell index of side r over this step's sites for radius queries
+  // (core/cell_index.h), made by `make` on the first call of a step for
+  // this r and kept for later batches of the same step and radius (one
+  // radius at a time; `make` may return null: the graph is used, and that
+  // decision is kept too). Concurrent callers wait for one build.
+  std::shared_ptr<const CellIndex> CachedCellIndex(
+      double r,
+      const std::function<std::shared_ptr<const CellIndex>()>& make) const;
+  // Whether CachedCellIndex holds a decision for r in this step.
+  bool HasCachedCellIndex(double r) const;
   // query_view() when its rows are already built, else view(): for a
   // search that walks each fan once anyway (all-points NN), building the
   // rows first would cost two more walks of every fan.

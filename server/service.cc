@@ -967,6 +967,7 @@ grpc::Status KinetriServiceImpl::RunQuery(
       if (radius) {
         core::RowOptions rows;
         rows.distances = req->include_distances();
+        rows.batch_queries = total_rows;
         result = by_id ? core::WithinRadiusOfPoints(
                              t, id_block, req->radius(), req->exclude_self(),
                              req->max_results_per_row(), limits, rows)

@@ -371,6 +371,43 @@ TEST(Queries, CancellationStopsTheWork) {
   }
 }
 
+// A batch asked in blocks (as the server does) with the batch size as a
+// hint plans once for the batch: the blocks share the step's cached cell
+// index, answer exactly as the graph walk, and a step replaces the index
+// (a stale one would answer for the old positions).
+TEST(Queries, BlocksOfABatchShareTheStepsCellIndex) {
+  const size_t n = 4000;
+  auto t = Make(testing::UniformPoints(n, 50));
+  ASSERT_TRUE(t.ok());
+  std::vector<uint32_t> ids(n);
+  std::iota(ids.begin(), ids.end(), 0u);
+  std::mt19937_64 rng(51);
+  std::normal_distribution<double> g(0.0, 0.003);
+  const double r = std::sqrt(20.0 / (3.14159 * n));
+  for (int step = 0; step < 3; ++step) {
+    RowOptions graph;
+    graph.plan = RowOptions::Plan::kGraph;
+    auto want = WithinRadiusOfPoints(*t, ids, r, true, 0, {}, graph);
+    ASSERT_TRUE(want.ok());
+    RowOptions hinted;
+    hinted.batch_queries = n;
+    const size_t block = 100;  // far below n / 8: alone, they would walk
+    for (size_t first = 0; first < n; first += block) {
+      auto got = WithinRadiusOfPoints(
+          *t, absl::MakeConstSpan(ids).subspan(first, block), r, true, 0, {},
+          hinted);
+      ASSERT_TRUE(got.ok());
+      for (size_t i = 0; i < block; ++i) {
+        ASSERT_EQ(Row(*got, i), Row(*want, first + i))
+            << "step " << step << " point " << first + i;
+      }
+    }
+    std::vector<Vec2> d(n);
+    for (auto& v : d) v = {g(rng), g(rng)};
+    ASSERT_TRUE(t->ApplyDisplacements(DisplacementBatch::Dense(d)).ok());
+  }
+}
+
 // The executor under test answers exactly as the host's region executor
 // (ids, distances bit for bit, truncation flags) on the same points, before
 // and after steps: a device executor refreshes its copy of the query view
