@@ -206,7 +206,10 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
   // its own buffer (no allocation per row), then copied into the CSR.
   constexpr size_t kBlock = 256;
   const size_t blocks = (nq + kBlock - 1) / kBlock;
-  std::vector<std::vector<Hit>> block_hits(blocks);
+  // Per block: the ids of its rows and (when asked) their distances, in
+  // separate arrays (4 bytes per result for set rows, not a 16-byte Hit).
+  std::vector<std::vector<uint32_t>> block_ids(blocks);
+  std::vector<std::vector<double>> block_dist(distances ? blocks : 0);
   std::vector<uint64_t> row_size(nq, 0);
   std::vector<uint8_t> truncated(nq, 0);
   // Slot of each request in processing order, and where the row of each
@@ -247,7 +250,7 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
       ParallelFor(
           0, blocks,
           [&](size_t b) {
-            std::vector<Hit>& hits = block_hits[b];
+            std::vector<uint32_t>& ids = block_ids[b];
             std::vector<Hit>& row = Scratch<Hit>();
             for (size_t j = b * kBlock; j < std::min(nq, (b + 1) * kBlock);
                  ++j) {
@@ -290,8 +293,11 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
               }
               sorted_truncated[j] = end == kRowTruncated ? 1 : 0;
               sorted_size[j] = row.size();
-              row_start[j] = hits.size();
-              hits.insert(hits.end(), row.begin(), row.end());
+              row_start[j] = ids.size();
+              for (const Hit& h : row) ids.push_back(h.ext);
+              if (distances) {
+                for (const Hit& h : row) block_dist[b].push_back(h.dist);
+              }
             }
           },
           1);
@@ -315,13 +321,14 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
   out.ids.resize(out.offsets[nq]);
   if (distances) out.distances.resize(out.offsets[nq]);
   ParallelFor(0, nq, [&](size_t i) {
+    const uint64_t len = out.offsets[i + 1] - out.offsets[i];
+    if (len == 0) return;
     const uint32_t j = slot_of[i];
-    const Hit* h = block_hits.empty()
-                       ? nullptr
-                       : block_hits[j / kBlock].data() + row_start[j];
-    for (uint64_t k = out.offsets[i]; k < out.offsets[i + 1]; ++k, ++h) {
-      out.ids[k] = h->ext;
-      if (distances) out.distances[k] = h->dist;
+    std::copy_n(block_ids[j / kBlock].begin() + row_start[j], len,
+                out.ids.begin() + out.offsets[i]);
+    if (distances) {
+      std::copy_n(block_dist[j / kBlock].begin() + row_start[j], len,
+                  out.distances.begin() + out.offsets[i]);
     }
   });
   out.truncated = std::move(truncated);
