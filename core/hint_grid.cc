@@ -2,6 +2,8 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
+#include <vector>
 
 namespace kinetri::core {
 
@@ -25,6 +27,41 @@ HintGrid::HintGrid(const TriangulationView& v) {
     const uint32_t s = v.sites[i];
     uint32_t& c = cells_[view_.Cell(v.pos[s])];
     if (c == kNoVertex) c = s;
+  }
+  // An empty cell (about 2 % of them for uniform points, most of a sparse
+  // region) starts from a site of the nearest non-empty cell of its row,
+  // or of the nearest row with sites: a walk from there is short, where
+  // one from the first site would cross the whole mesh.
+  const size_t side = view_.side;
+  std::vector<uint8_t> row_has(side, 0);
+  for (size_t y = 0; y < side; ++y) {
+    uint32_t* row = cells_.data() + y * side;
+    uint32_t last = kNoVertex;
+    for (size_t x = 0; x < side; ++x) {
+      if (row[x] != kNoVertex) {
+        last = row[x];
+      } else {
+        row[x] = last;  // from the left (may stay empty)
+      }
+    }
+    last = kNoVertex;
+    for (size_t x = side; x-- > 0;) {
+      if (row[x] != kNoVertex) {
+        last = row[x];
+      } else {
+        row[x] = last;  // from the right, for the cells left of the first
+      }
+    }
+    row_has[y] = row[0] != kNoVertex;
+  }
+  for (int pass = 0; pass < 2; ++pass) {  // rows without sites: up, down
+    for (size_t k = 1; k < side; ++k) {
+      const size_t y = pass == 0 ? k : side - 1 - k;
+      const size_t from = pass == 0 ? y - 1 : y + 1;
+      if (row_has[y] || !row_has[from]) continue;
+      std::copy_n(cells_.data() + from * side, side, cells_.data() + y * side);
+      row_has[y] = 1;
+    }
   }
 }
 

@@ -221,10 +221,11 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
   if (t.num_sites() > 0) {
     const TriangulationView v = t.query_view();
     t.Run([&] {
-      std::unique_ptr<HintGrid> grid;
+      std::shared_ptr<const HintGrid> grid;
       bool need_hints = false;
       for (const Query& q : queries) need_hints |= q.start_site == kNoVertex;
-      if (need_hints) grid = std::make_unique<HintGrid>(v);
+      // Built once per step (the server asks a batch in blocks).
+      if (need_hints) grid = t.CachedHintGrid();
       const HintGridView hints = grid ? grid->view() : HintGridView{};
       std::vector<uint32_t> start(nq);
       ParallelFor(0, nq, [&](size_t i) {

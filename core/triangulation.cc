@@ -151,6 +151,8 @@ struct Triangulation::AdjacencyCache {
   bool cells_valid = false;
   double cells_r = 0.0;
   std::shared_ptr<const CellIndex> cells;
+  // Position queries' walk starts of this step (CachedHintGrid).
+  std::shared_ptr<const HintGrid> hints;
 };
 
 Triangulation::Triangulation(Triangulation&&) noexcept = default;
@@ -298,6 +300,15 @@ std::shared_ptr<const CellIndex> Triangulation::CachedCellIndex(
     adjacency_->cells_valid = true;
   }
   return adjacency_->cells;
+}
+
+std::shared_ptr<const HintGrid> Triangulation::CachedHintGrid() const {
+  const TriangulationView v = view();
+  std::lock_guard<std::mutex> lock(adjacency_->mu);
+  if (adjacency_->hints == nullptr) {
+    adjacency_->hints = std::make_shared<const HintGrid>(v);
+  }
+  return adjacency_->hints;
 }
 
 bool Triangulation::HasCachedCellIndex(double r) const {
@@ -1353,6 +1364,7 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
     adjacency_->valid = false;
     adjacency_->cells_valid = false;
     adjacency_->cells.reset();
+    adjacency_->hints.reset();
   }
 
   int cancelled = 0;

@@ -61,6 +61,7 @@
 namespace kinetri::core {
 
 class CellIndex;
+class HintGrid;
 
 // Which CPU executor repairs the mesh after a move.
 enum class Executor {
@@ -219,6 +220,9 @@ class Triangulation {
       const std::function<std::shared_ptr<const CellIndex>()>& make) const;
   // Whether CachedCellIndex holds a decision for r in this step.
   bool HasCachedCellIndex(double r) const;
+  // The hint grid that starts position queries' walks (core/hint_grid.h),
+  // built on the first call of a step and kept until the next step.
+  std::shared_ptr<const HintGrid> CachedHintGrid() const;
   // query_view() when its rows are already built, else view(): for a
   // search that walks each fan once anyway (all-points NN), building the
   // rows first would cost two more walks of every fan.
