@@ -150,27 +150,20 @@ absl::Status CheckRadius(double r) {
   return absl::OkStatus();
 }
 
-absl::StatusOr<std::vector<Query>> PositionQueries(absl::Span<const Vec2> qs) {
+// The queries of positions and of points, their arguments already checked
+// (CheckQueryPositions, CheckQueryIds).
+std::vector<Query> PositionQueries(absl::Span<const Vec2> qs) {
   std::vector<Query> out(qs.size());
-  for (size_t i = 0; i < qs.size(); ++i) {
-    absl::Status s = CheckQueryPosition(qs[i], i);
-    if (!s.ok()) return s;
-    out[i].q = qs[i];
-  }
+  for (size_t i = 0; i < qs.size(); ++i) out[i].q = qs[i];
   return out;
 }
 
-absl::StatusOr<std::vector<Query>> PointQueries(const Triangulation& t,
-                                                absl::Span<const uint32_t> ids,
-                                                bool exclude_self) {
+std::vector<Query> PointQueries(const Triangulation& t,
+                                absl::Span<const uint32_t> ids,
+                                bool exclude_self) {
   const TriangulationView v = t.view();
   std::vector<Query> out(ids.size());
   for (size_t i = 0; i < ids.size(); ++i) {
-    if (ids[i] >= v.num_points) {
-      return absl::NotFoundError(absl::StrCat("ids[", i, "] = ", ids[i],
-                                              ": no such point (size ",
-                                              v.num_points, ")"));
-    }
     const uint32_t in = v.int_of_ext[ids[i]];
     out[i].q = v.pos[in];
     out[i].self_ext = exclude_self ? ids[i] : kNoVertex;
@@ -389,7 +382,6 @@ int KnnRow(const TriangulationView& v, const Query& q, uint32_t root,
 absl::StatusOr<NeighborLists> KNearestImpl(const Triangulation& t,
                                            const std::vector<Query>& queries,
                                            int k, QueryLimits limits) {
-  if (absl::Status s = CheckQueryK(k); !s.ok()) return s;
   const size_t want = static_cast<size_t>(k);
   return RunRows(
       t, queries, limits, /*distances=*/true,
@@ -450,7 +442,6 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
                                          double r, uint32_t max_results,
                                          QueryLimits limits,
                                          RowOptions options) {
-  if (absl::Status s = CheckRadius(r); !s.ok()) return s;
   const std::shared_ptr<const CellIndex> index =
       RadiusCells(t, r, queries.size(), options);
   const CellIndex* cells = index.get();
@@ -693,35 +684,35 @@ absl::StatusOr<NeighborLists> AllNearestNeighbors(const Triangulation& t) {
   return out;
 }
 
+// Every query kind checks its arguments here, once, for every executor;
+// then the device executor answers when the triangulation has one.
 absl::StatusOr<NeighborLists> KNearest(const Triangulation& t,
                                        absl::Span<const Vec2> queries, int k,
                                        QueryLimits limits) {
-  auto qs = PositionQueries(queries);
-  if (!qs.ok()) return qs.status();
+  if (absl::Status s = CheckQueryPositions(queries); !s.ok()) return s;
+  if (absl::Status s = CheckQueryK(k); !s.ok()) return s;
   if (t.device_executor() != nullptr) {
-    if (absl::Status s = CheckQueryK(k); !s.ok()) return s;
     device::DeviceQuery q = DeviceKnn(k, limits);
     q.positions = queries;
     return DeviceRows(t, q);
   }
-  return KNearestImpl(t, *qs, k, limits);
+  return KNearestImpl(t, PositionQueries(queries), k, limits);
 }
 
 absl::StatusOr<NeighborLists> KNearestOfPoints(const Triangulation& t,
                                                absl::Span<const uint32_t> ids,
                                                int k, bool exclude_self,
                                                QueryLimits limits) {
-  auto qs = PointQueries(t, ids, exclude_self);
-  if (!qs.ok()) return qs.status();
+  if (absl::Status s = CheckQueryIds(t, ids); !s.ok()) return s;
+  if (absl::Status s = CheckQueryK(k); !s.ok()) return s;
   if (t.device_executor() != nullptr) {
-    if (absl::Status s = CheckQueryK(k); !s.ok()) return s;
     device::DeviceQuery q = DeviceKnn(k, limits);
     q.by_ids = true;
     q.ids = ids;
     q.exclude_self = exclude_self;
     return DeviceRows(t, q);
   }
-  return KNearestImpl(t, *qs, k, limits);
+  return KNearestImpl(t, PointQueries(t, ids, exclude_self), k, limits);
 }
 
 absl::StatusOr<NeighborLists> Nearest(const Triangulation& t,
@@ -734,15 +725,32 @@ absl::StatusOr<NeighborLists> WithinRadius(const Triangulation& t,
                                            double r, uint32_t max_results,
                                            QueryLimits limits,
                                            RowOptions options) {
-  auto qs = PositionQueries(queries);
-  if (!qs.ok()) return qs.status();
+  if (absl::Status s = CheckQueryPositions(queries); !s.ok()) return s;
+  if (absl::Status s = CheckRadius(r); !s.ok()) return s;
   if (t.device_executor() != nullptr) {
-    if (absl::Status s = CheckRadius(r); !s.ok()) return s;
     device::DeviceQuery q = DeviceRadius(r, max_results, limits, options);
     q.positions = queries;
     return DeviceRows(t, q);
   }
-  return RadiusImpl(t, *qs, r, max_results, limits, options);
+  return RadiusImpl(t, PositionQueries(queries), r, max_results, limits,
+                    options);
+}
+
+absl::StatusOr<NeighborLists> WithinRadiusOfPoints(
+    const Triangulation& t, absl::Span<const uint32_t> ids, double r,
+    bool exclude_self, uint32_t max_results, QueryLimits limits,
+    RowOptions options) {
+  if (absl::Status s = CheckQueryIds(t, ids); !s.ok()) return s;
+  if (absl::Status s = CheckRadius(r); !s.ok()) return s;
+  if (t.device_executor() != nullptr) {
+    device::DeviceQuery q = DeviceRadius(r, max_results, limits, options);
+    q.by_ids = true;
+    q.ids = ids;
+    q.exclude_self = exclude_self;
+    return DeviceRows(t, q);
+  }
+  return RadiusImpl(t, PointQueries(t, ids, exclude_self), r, max_results,
+                    limits, options);
 }
 
 absl::Status CheckQueryPositions(absl::Span<const Vec2> queries) {
@@ -754,7 +762,14 @@ absl::Status CheckQueryPositions(absl::Span<const Vec2> queries) {
 
 absl::Status CheckQueryIds(const Triangulation& t,
                            absl::Span<const uint32_t> ids) {
-  return PointQueries(t, ids, false).status();
+  const uint32_t n = t.size();
+  for (size_t i = 0; i < ids.size(); ++i) {
+    if (ids[i] >= n) {
+      return absl::NotFoundError(absl::StrCat(
+          "ids[", i, "] = ", ids[i], ": no such point (size ", n, ")"));
+    }
+  }
+  return absl::OkStatus();
 }
 
 absl::Status CheckQueryRadius(double r) { return CheckRadius(r); }
@@ -764,23 +779,6 @@ absl::Status CheckQueryK(int k) {
     return absl::InvalidArgumentError(absl::StrCat("k = ", k, " must be > 0"));
   }
   return absl::OkStatus();
-}
-
-absl::StatusOr<NeighborLists> WithinRadiusOfPoints(
-    const Triangulation& t, absl::Span<const uint32_t> ids, double r,
-    bool exclude_self, uint32_t max_results, QueryLimits limits,
-    RowOptions options) {
-  auto qs = PointQueries(t, ids, exclude_self);
-  if (!qs.ok()) return qs.status();
-  if (t.device_executor() != nullptr) {
-    if (absl::Status s = CheckRadius(r); !s.ok()) return s;
-    device::DeviceQuery q = DeviceRadius(r, max_results, limits, options);
-    q.by_ids = true;
-    q.ids = ids;
-    q.exclude_self = exclude_self;
-    return DeviceRows(t, q);
-  }
-  return RadiusImpl(t, *qs, r, max_results, limits, options);
 }
 
 }  // namespace kinetri::core
