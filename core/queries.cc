@@ -411,18 +411,20 @@ std::shared_ptr<const CellIndex> RadiusCells(const Triangulation& t, double r,
     return nullptr;
   }
   const TriangulationView v = t.view();
-  // At most about four cells per site (the index's memory stays O(n)).
-  const size_t max_cells = 4 * size_t{v.num_sites} + 64;
+  // At most about four cells per site (the index's memory stays O(n));
+  // kAuto also wants the disks to hold kCellsMinSitesPerDisk sites at the
+  // mean density over the cells, i.e. at most pi / that many cells per
+  // site. The index gives up before sorting when it would need more.
+  size_t max_cells = 4 * size_t{v.num_sites} + 64;
+  if (options.plan == Plan::kAuto) {
+    max_cells = std::min<size_t>(
+        max_cells, static_cast<size_t>(double(v.num_sites) * 3.14159 /
+                                       kCellsMinSitesPerDisk));
+  }
   auto build = [&]() -> std::shared_ptr<const CellIndex> {
     std::optional<CellIndex> cells;
     t.Run([&] { cells = CellIndex::Build(v, r, max_cells); });
     if (!cells) return nullptr;
-    if (options.plan == Plan::kAuto) {
-      // Sites per disk expected from the mean density over the cells.
-      const double per_disk =
-          double(v.num_sites) / double(cells->num_cells()) * 3.14159;
-      if (per_disk < kCellsMinSitesPerDisk) return nullptr;
-    }
     return std::make_shared<const CellIndex>(*std::move(cells));
   };
   if (options.plan == Plan::kCells) return build();
