@@ -11,6 +11,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "core/flip_rules.h"
+#include "core/mesh_scan.h"
 #include "core/parallel.h"
 #include "core/predicates.h"
 #include "core/vertex_ops.h"
@@ -224,37 +225,6 @@ void AppendStar(const Mesh& mesh, uint32_t v, std::vector<uint32_t>* out) {
 void AppendStarAndHullRing(const Mesh& mesh, uint32_t v,
                            std::vector<uint32_t>* out) {
   AppendStarAndHullRingFrom(mesh.view(), mesh.vertex_edge()[v], out);
-}
-
-// The fused dense scan of triangle slots [lo, hi): invalid triangles
-// (rules::TriangleOk false) and illegal canonical edges (e < twin(e),
-// rules::IsIllegal true), each predicate evaluated once, each vertex
-// position loaded once per triangle.
-void ScanRange(const MeshView& m, const Vec2* p, uint32_t lo, uint32_t hi,
-               std::vector<uint32_t>* invalid, std::vector<uint32_t>* illegal) {
-  for (uint32_t t = lo; t < hi; ++t) {
-    const uint32_t v[3] = {m.origin[3 * t], m.origin[3 * t + 1],
-                           m.origin[3 * t + 2]};
-    if (v[0] == kNoVertex) continue;  // free slot
-    if (v[0] == kInfiniteVertex || v[1] == kInfiniteVertex ||
-        v[2] == kInfiniteVertex) {
-      // Ghost: its hull turn decides; its edges are never illegal.
-      if (!rules::TriangleOk(m, p, t)) invalid->push_back(t);
-      continue;
-    }
-    const Vec2 q[3] = {p[v[0]], p[v[1]], p[v[2]]};
-    if (Orient2d(q[0], q[1], q[2]) <= 0) invalid->push_back(t);
-    for (uint32_t k = 0; k < 3; ++k) {
-      const uint32_t e = 3 * t + k, f = m.twin[e];
-      if (e > f) continue;
-      const uint32_t d = m.origin[Prev(f)];
-      if (d == kInfiniteVertex) continue;
-      // Edge e: origin q[k], destination q[k+1], apex q[k+2] (as IsIllegal).
-      if (InCircleSoS(q[k], q[(k + 1) % 3], q[(k + 2) % 3], p[d]) > 0) {
-        illegal->push_back(e);
-      }
-    }
-  }
 }
 
 void Undo(const MeshView& m, const std::vector<uint32_t>& log, Mesh* mesh) {
@@ -670,7 +640,7 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
                           const uint32_t lo = static_cast<uint32_t>(r * rt);
                           const uint32_t hi = static_cast<uint32_t>(
                               std::min<size_t>(nt, (r + 1) * size_t{rt}));
-                          ScanRange(m, p, lo, hi, &g.invalid, &g.illegal);
+                          ScanTriangles(m, p, lo, hi, &g.invalid, &g.illegal);
                         }
                       });
   } else {

@@ -1,11 +1,14 @@
 // Unit tests beneath every executor: the mesh and its flip, the per-element
-// rules (core/flip_rules.h), vertex removal and insertion
+// rules (core/flip_rules.h), the dense scan (core/mesh_scan.h) against
+// them, vertex removal and insertion
 // (core/vertex_ops.h) and the serial stack loops of the region executor,
 // each against CGAL's triangulation of the same points.
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <cmath>
 #include <numeric>
+#include <random>
 #include <utility>
 #include <vector>
 
@@ -13,6 +16,7 @@
 #include "core/flip_rules.h"
 #include "core/kinetic.h"
 #include "core/mesh.h"
+#include "core/mesh_scan.h"
 #include "core/region_executor.h"
 #include "core/vertex_ops.h"
 #include "tests/core/test_util.h"
@@ -57,6 +61,22 @@ void ExpectConsistent(const Mesh& mesh) {
       ASSERT_EQ(m.origin[e], v);
     }
   }
+}
+
+std::vector<Vec2> Shifted(std::vector<Vec2> pts, double by) {
+  for (Vec2& p : pts) p = {p.x + by, p.y + by};
+  return pts;
+}
+
+double MeshScanTestArea(const std::vector<Vec2>& pts) {
+  double x0 = pts[0].x, x1 = x0, y0 = pts[0].y, y1 = y0;
+  for (const Vec2& p : pts) {
+    x0 = std::min(x0, p.x);
+    x1 = std::max(x1, p.x);
+    y0 = std::min(y0, p.y);
+    y1 = std::max(y1, p.y);
+  }
+  return (x1 - x0) * (y1 - y0);
 }
 
 uint32_t InteriorEdge(const Mesh& mesh) {
@@ -168,6 +188,97 @@ TEST(FlipRules, NonConvexQuadHasNoInteriorFlip) {
     if (rules::ProposeFixFlip(m, moved.data(), t).edge == kNoEdge) ++stuck;
   }
   EXPECT_GT(stuck, 0);
+}
+
+// What ScanTriangles must find: the rules, one element at a time.
+void ExpectScanMatchesRules(const Mesh& mesh, const std::vector<Vec2>& pos) {
+  const MeshView m = mesh.view();
+  const uint32_t nt = mesh.num_triangles();
+  std::vector<uint32_t> want_invalid, want_illegal;
+  for (uint32_t t = 0; t < nt; ++t) {
+    if (m.IsFree(t)) continue;
+    if (!rules::TriangleOk(m, pos.data(), t)) want_invalid.push_back(t);
+    for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
+      if (e < m.twin[e] && !m.IsGhost(t) &&
+          rules::IsIllegal(m, pos.data(), e)) {
+        want_illegal.push_back(e);
+      }
+    }
+  }
+  // Whole range, and cut into pieces (as regions cut it).
+  for (uint32_t piece : {nt, 7u, 64u}) {
+    std::vector<uint32_t> invalid, illegal;
+    for (uint32_t lo = 0; lo < nt; lo += piece) {
+      ScanTriangles(m, pos.data(), lo, std::min(nt, lo + piece), &invalid,
+                    &illegal);
+    }
+    EXPECT_EQ(invalid, want_invalid) << "piece " << piece;
+    EXPECT_EQ(illegal, want_illegal) << "piece " << piece;
+  }
+}
+
+TEST(MeshScan, FindsWhatTheRulesFind) {
+  std::mt19937_64 rng(11);
+  struct Case {
+    const char* name;
+    std::vector<Vec2> pts;
+  };
+  std::vector<Case> cases = {
+      {"uniform", testing::UniformPoints(3000, 5)},
+      {"clustered", testing::ClusteredPoints(3000, 6)},
+      {"lattice", testing::Lattice(40)},  // every quad cocircular
+      // Cocircular too, but with coordinates whose differences round: the
+      // floating-point determinants are noise that only the error bounds
+      // keep from deciding.
+      {"lattice, rounded", Shifted(testing::Lattice(40, 0.1), 1e3)},
+      {"huge", testing::UniformPoints(2000, 7, 1e25)},
+      {"tiny", testing::UniformPoints(2000, 8, 1e-25)},
+      {"offset", testing::UniformPoints(2000, 9, 1e-6, 1e6)},
+  };
+  for (const Case& c : cases) {
+    SCOPED_TRACE(c.name);
+    Mesh mesh = BuildDelaunayWithCgal(c.pts, AllSites(c.pts.size()));
+    // Unmoved: valid and Delaunay (the lattice only by the perturbation,
+    // so every one of its tests reaches the exact predicate).
+    ExpectScanMatchesRules(mesh, c.pts);
+    const double spacing =
+        std::sqrt(MeshScanTestArea(c.pts) / double(c.pts.size()));
+    for (double sigma : {1e-3, 0.1, 1.0}) {
+      std::normal_distribution<double> g(0.0, sigma * spacing);
+      std::vector<Vec2> moved = c.pts;
+      for (Vec2& p : moved) p = {p.x + g(rng), p.y + g(rng)};
+      ExpectScanMatchesRules(mesh, moved);
+    }
+    // Exact degeneracies after a move: every other point of the lattice
+    // moves onto its right neighbour's column (collinear, cocircular and
+    // coincident-with-a-circle cases).
+    std::vector<Vec2> snapped = c.pts;
+    for (size_t i = 0; i < snapped.size(); i += 2) {
+      snapped[i].x = snapped[(i + 1) % snapped.size()].x;
+    }
+    ExpectScanMatchesRules(mesh, snapped);
+  }
+  {
+    // A rotated lattice's mesh with its points shifted: rounding moves them
+    // off their circles by an ulp or so, in either direction, so many
+    // diagonals become illegal by margins the floating-point determinants
+    // cannot see.
+    SCOPED_TRACE("rotated lattice shifted after the build");
+    std::vector<Vec2> pts;
+    for (const Vec2& p : testing::Lattice(40, 0.1)) {
+      pts.push_back({0.8 * p.x - 0.6 * p.y, 0.6 * p.x + 0.8 * p.y});
+    }
+    Mesh mesh = BuildDelaunayWithCgal(pts, AllSites(pts.size()));
+    const std::vector<Vec2> shifted = Shifted(pts, 0.5);
+    ExpectScanMatchesRules(mesh, shifted);
+  }
+  // Free slots are skipped.
+  const auto pts = testing::UniformPoints(500, 10);
+  Mesh mesh = BuildDelaunayWithCgal(pts, AllSites(pts.size()));
+  std::vector<uint32_t> touched;
+  ASSERT_TRUE(VertexOps::Remove(mesh, pts, 17, &touched, nullptr));
+  ASSERT_TRUE(mesh.has_free_triangles());
+  ExpectScanMatchesRules(mesh, pts);
 }
 
 class VertexOpsTest : public ::testing::TestWithParam<int> {};
