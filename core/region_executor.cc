@@ -133,10 +133,13 @@ void FixLoop(const MeshView& m, const Vec2* p, Bounds b,
 
 // Delaunay flips with a LIFO stack of half-edges inside b (each half-edge's
 // own triangle lies in b).
+// `newly_marked` (optional): the triangles this loop marks that were not
+// marked before.
 template <bool kBounded, bool kStarChecks = false>
 void LegalizeLoop(const MeshView& m, const Vec2* p, Bounds b,
                   std::vector<uint32_t>& stack, std::vector<uint32_t>& deferred,
-                  FlipCounts* counts, uint8_t* mark, Mesh* mesh) {
+                  FlipCounts* counts, uint8_t* mark, Mesh* mesh,
+                  std::vector<uint32_t>* newly_marked = nullptr) {
   while (!stack.empty()) {
     const uint32_t e = stack.back();
     stack.pop_back();
@@ -164,7 +167,12 @@ void LegalizeLoop(const MeshView& m, const Vec2* p, Bounds b,
     m.Flip(e);
     if (mesh) mesh->UpdateVertexEdgesAfterFlip(e);
     ++counts->delaunay;
-    if (mark) mark[TriangleOf(e)] = mark[TriangleOf(f)] = 1;
+    if (mark) {
+      for (uint32_t t : {TriangleOf(e), TriangleOf(f)}) {
+        if (newly_marked && !mark[t]) newly_marked->push_back(t);
+        mark[t] = 1;
+      }
+    }
     stack.push_back(Next(e));
     stack.push_back(Prev(e));
     stack.push_back(Next(f));
@@ -732,10 +740,18 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
                           LegalizeLoop<true>(m, p, Bounds{lo, hi}, g.stack,
                                              g.deferred, &g.counts,
                                              tri_mark_.data(), nullptr);
+                          // The region's changed triangles, listed while
+                          // its slots are in cache.
+                          g.marked.clear();
+                          for (uint32_t t = lo; t < hi; ++t) {
+                            if (tri_mark_[t]) g.marked.push_back(t);
+                          }
                         }
                       });
     if (Cancelled()) return stop(true);
-    Region serial;
+    Region& serial = serial_;
+    serial.ClearWork();
+    serial.marked.clear();
     for (Region& g : regions_) {
       serial.stack.insert(serial.stack.end(), g.deferred.rbegin(),
                           g.deferred.rend());
@@ -743,30 +759,45 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
       stats->flips += g.counts;
     }
     LegalizeLoop<false>(m, p, Bounds{}, serial.stack, serial.deferred,
-                        &serial.counts, tri_mark_.data(), nullptr);
+                        &serial.counts, tri_mark_.data(), nullptr,
+                        &serial.marked);
     stats->flips += serial.counts;
     ++stats->flips.legalize_rounds;
   }
   // vertex_edge of every vertex of a changed triangle: the smallest of its
   // half-edges in changed triangles (deterministic; every vertex of a
-  // flipped quad keeps a half-edge in a flipped triangle).
+  // flipped quad keeps a half-edge in a flipped triangle). From the lists
+  // of changed triangles, not a pass over every slot: their slots are
+  // scattered, so they are prefetched, and the second pass reads the
+  // (vertex, half-edge) pairs the first one wrote.
   {
     uint32_t* ve = mesh.mutable_vertex_edge().data();
-    ParallelFor(0, nt, [&](size_t t) {
-      if (!tri_mark_[t]) return;
-      for (size_t e = 3 * t; e < 3 * t + 3; ++e) {
-        const uint32_t v = m.origin[e];
-        if (v < n)
+    auto for_each_list = [&](auto&& fn) {
+      tbb::parallel_for(tbb::blocked_range<size_t>(0, num_regions + 1, 1),
+                        [&](const tbb::blocked_range<size_t>& range) {
+                          for (size_t r = range.begin(); r != range.end();
+                               ++r) {
+                            fn(r < num_regions ? regions_[r] : serial_);
+                          }
+                        });
+    };
+    for_each_list([&](Region& g) {
+      g.owners.clear();
+      const size_t k = g.marked.size();
+      for (size_t i = 0; i < k; ++i) {
+        if (i + 16 < k) __builtin_prefetch(&m.origin[3 * g.marked[i + 16]]);
+        const uint32_t t = g.marked[i];
+        for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
+          const uint32_t v = m.origin[e];
+          if (v >= n) continue;
           std::atomic_ref<uint32_t>(ve[v]).store(kNoEdge,
                                                  std::memory_order_relaxed);
+          g.owners.push_back({v, e});
+        }
       }
     });
-    ParallelFor(0, nt, [&](size_t t) {
-      if (!tri_mark_[t]) return;
-      for (size_t e = 3 * t; e < 3 * t + 3; ++e) {
-        const uint32_t v = m.origin[e];
-        if (v < n) AtomicMin(&ve[v], static_cast<uint32_t>(e));
-      }
+    for_each_list([&](Region& g) {
+      for (const auto& [v, e] : g.owners) AtomicMin(&ve[v], e);
     });
   }
   stats->legalize_seconds += SecondsSince(t0);

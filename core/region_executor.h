@@ -30,6 +30,7 @@
 
 #include <cstdint>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "core/cancel.h"
@@ -121,6 +122,9 @@ class RegionExecutor {
     std::vector<uint32_t> waiting;   // invalid, no repairing flip yet
     std::vector<uint32_t> deferred;  // crosses the region boundary
     std::vector<uint32_t> log;       // flipped edges, in order
+    std::vector<uint32_t> marked;    // changed triangles (legalizing)
+    // (vertex, half-edge leaving it) of the changed triangles.
+    std::vector<std::pair<uint32_t, uint32_t>> owners;
     FlipCounts counts;
     void ClearWork();
   };
@@ -154,6 +158,7 @@ class RegionExecutor {
   std::vector<uint32_t> held_edge_;  // a half-edge leaving each, when held
   std::vector<uint8_t> tri_mark_;    // per triangle: changed by a region flip
   std::vector<Region> regions_;
+  Region serial_;  // the serial pass over what crossed region boundaries
   uint32_t hull_hint_ = 0;  // a ghost triangle, remembered
 };
 
