@@ -88,16 +88,9 @@ KINETRI_VECTOR_CLONES void ScanTriangles(const MeshView& m, const Vec2* pos,
     tt.clift = tt.cx * tt.cx + tt.cy * tt.cy;
     tt.bxcy = tt.bx * tt.cy;
     tt.cxby = tt.cx * tt.by;
-    // Orient2d(b, c, a) (a cyclic rotation: the same sign as (a, b, c)),
-    // whose filter translates to a as well.
-    {
-      const double det = tt.bxcy - tt.cxby;
-      const double errbound =
-          internal::kCcwErrBoundA * (std::fabs(tt.bxcy) + std::fabs(tt.cxby));
-      const bool ok = det > errbound ||
-                      (-det <= errbound && Orient2d(q[0], q[1], q[2]) > 0);
-      if (!ok) invalid->push_back(t);
-    }
+    // Orient2d(b, c, a): a cyclic rotation, so the sign of (a, b, c), and
+    // its filter translates to a as the in-circle filters below do.
+    if (Orient2d(q[1], q[2], q[0]) <= 0) invalid->push_back(t);
     // The three edges are filtered together in the lanes of one vector,
     // each from both of its triangles: whether e is the canonical
     // half-edge is a coin toss, and mispredicting it costs more than a
