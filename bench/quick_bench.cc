@@ -160,7 +160,8 @@ int main(int argc, char** argv) {
         "step %d: update %.4f s (%s, substeps %u, held %u, halvings %u, "
         "re-inserted %u, deferred %u, fix flips %llu, hull %llu/%llu, "
         "Delaunay flips %llu in %u rounds; scan %.3f s, fix %.3f s, "
-        "legalize %.3f s, held %.3f s, re-insert %.3f s%s%s) | CGAL rebuild "
+        "legalize %.3f s, held %.3f s, re-insert %.3f s, tolerances %.3f s "
+        "(%u moved points quiet)%s%s) | CGAL rebuild "
         "%.4f s | ratio %.3f\n",
         s, up, kinetri::core::UpdatePathName(rep->path), rep->substeps,
         rep->held_vertices, rep->local_halvings, rep->reinserted, rep->deferred,
@@ -169,7 +170,8 @@ int main(int argc, char** argv) {
         (unsigned long long)rep->flips.hull_release,
         (unsigned long long)rep->flips.delaunay, rep->flips.legalize_rounds,
         rep->scan_seconds, rep->fix_seconds, rep->legalize_seconds,
-        rep->held_seconds, rep->reinsert_seconds,
+        rep->held_seconds, rep->reinsert_seconds, rep->filter_seconds,
+        rep->quiet_points,
         rep->fallback_reason.empty() ? "" : "; rebuilt because: ",
         rep->fallback_reason.c_str(), cg, up / cg);
     std::fflush(stdout);

@@ -60,6 +60,20 @@ struct RegionStepPolicy {
   double held_vertex_cost = 8.0;
   double rebuild_point_cost = 1.5;
   double rebuild_fixed_cost = 200.0;
+  // Vertex tolerances (core/motion_filter.h): the step looks only around
+  // the vertices that leave theirs. It pays while few do: a certification
+  // of the whole mesh costs about two dense scans, and past a few percent
+  // of loud vertices the sparse step costs what the dense scan does
+  // (docs/BENCHMARKS.md). The driver certifies when a sample of the moving
+  // vertices predicts at most filter_estimate loud, keeps the filter while
+  // at most filter_fraction of all vertices are loud, and after a step
+  // where more are waits filter_backoff steps (doubling, to 256) before
+  // sampling again.
+  bool filter_motion = true;
+  double filter_estimate = 0.003;
+  double filter_fraction = 0.01;
+  uint32_t filter_samples = 1024;
+  int filter_backoff = 4;
 };
 
 // What a region step did (added to the caller's StepReport).
@@ -113,6 +127,11 @@ class RegionExecutor {
   static void LegalizeSerial(Mesh& mesh, const std::vector<Vec2>& pos,
                              const std::vector<uint32_t>& seed_triangles,
                              FlipCounts* counts);
+
+  // Per triangle slot, after a successful Step: nonzero for every triangle
+  // the step changed or looked at around a moved vertex (on the sparse
+  // path: each moved vertex's star and the ghosts next to it).
+  const std::vector<uint8_t>& changed_triangles() const { return tri_mark_; }
 
  private:
   struct Region {

@@ -242,6 +242,9 @@ Triangulation Triangulation::Clone() const {
   t.line_rank_ = line_rank_;
   t.baseline_span_ = baseline_span_;
   t.steps_ = steps_;
+  if (motion_filter_.valid()) t.motion_filter_ = motion_filter_;
+  t.filter_wait_ = filter_wait_;
+  t.filter_backoff_ = filter_backoff_;
   if (device_ != nullptr) {
     // Its own device copy (uploaded by its first step). The backend was
     // available when this triangulation was made; should it be gone (a GPU
@@ -342,6 +345,7 @@ TriangulationView Triangulation::view_with_cached_rows() const {
 
 bool Triangulation::Rebuild(const std::vector<Vec2>& positions_by_ext,
                             const CancelToken* cancel) {
+  motion_filter_.Invalidate();
   // Built aside and swapped in at the end, so that a cancelled rebuild
   // leaves the previous triangulation as it was.
   const uint32_t n = static_cast<uint32_t>(positions_by_ext.size());
@@ -419,10 +423,16 @@ double Triangulation::MeanEdgeSpan() const {
     double sum = 0.0;
     uint64_t count = 0;
   };
+  // A sample: every kStride-th half-edge (a prime, so the sample does not
+  // follow the three half-edges of a triangle). The statistic only decides
+  // when to renumber; a full pass cost 14 ms per check at 1M points.
+  constexpr size_t kStride = 31;
+  const size_t samples = (mesh_.num_half_edges() + kStride - 1) / kStride;
   const Acc acc = tbb::parallel_reduce(
-      tbb::blocked_range<size_t>(0, mesh_.num_half_edges(), 1 << 14), Acc{},
+      tbb::blocked_range<size_t>(0, samples, 1 << 12), Acc{},
       [&](const tbb::blocked_range<size_t>& r, Acc a) {
-        for (size_t e = r.begin(); e != r.end(); ++e) {
+        for (size_t i = r.begin(); i != r.end(); ++i) {
+          const size_t e = i * kStride;
           const uint32_t u = m.origin[e], v = m.Dest(static_cast<uint32_t>(e));
           if (u == kInfiniteVertex || v == kInfiniteVertex || u > v) continue;
           a.sum += static_cast<double>(v - u);
@@ -439,6 +449,7 @@ double Triangulation::MeanEdgeSpan() const {
 }
 
 void Triangulation::Renumber() {
+  motion_filter_.Invalidate();
   const uint32_t n = size();
   const std::vector<uint32_t> old_of_new = HilbertOrder(pos_);
   std::vector<uint32_t> new_of_old(n);
@@ -480,6 +491,7 @@ absl::Status Triangulation::AttemptOnDevice(
     const std::vector<Vec2>& to, const std::vector<uint32_t>* moved,
     const std::vector<uint32_t>* seeds, const CancelToken* cancel,
     StepReport* report, std::vector<uint32_t>* stuck_vertices, int* result) {
+  motion_filter_.Invalidate();
   std::vector<uint32_t> candidates;
   if (moved != nullptr) {
     candidates = KineticExecutor::CandidateTriangles(mesh_, *moved);
@@ -732,6 +744,7 @@ bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
                                 const std::vector<uint32_t>& moved_points,
                                 const CancelToken* cancel, StepReport* report,
                                 std::string* reason, int* cancelled) {
+  motion_filter_.Invalidate();
   const uint32_t n = size();
   // 1. Coincident points that part from their site are detached and
   //    inserted again at the end.
@@ -1003,7 +1016,9 @@ bool Triangulation::FinishLocalStep(std::vector<Vec2>& next,
     mesh_.Compact();
     MeshChangedOnHost();
   }
-  RefreshSites();
+  // Sites change only when points part from or join a site, and both go
+  // through re-insertion.
+  if (!reinsert.empty()) RefreshSites();
   return true;
 }
 
@@ -1015,20 +1030,57 @@ bool Triangulation::RegionUpdate(std::vector<Vec2>& next,
   const uint32_t n = size();
   std::vector<uint32_t> reinsert = DetachPartingPoints(next);
   const auto& ve = mesh_.vertex_edge();
-  std::vector<uint32_t> moved;
-  moved.reserve(moved_points.size());
-  for (uint32_t i : moved_points) {
-    if (rep_[i] == i && ve[i] != kNoEdge && next[i] != pos_[i]) {
-      moved.push_back(i);
+  // The moved sites in the mesh (hidden coincident points move with their
+  // site's representative); in parallel, one pass.
+  auto moves = [&](uint32_t i) {
+    return rep_[i] == i && ve[i] != kNoEdge && next[i] != pos_[i];
+  };
+  std::vector<uint32_t> moved = FilterIndices(
+      moved_points.size(), [&](size_t k) { return moves(moved_points[k]); });
+  for (uint32_t& k : moved) k = moved_points[k];
+  // Vertex tolerances: look only around the moved vertices that leave
+  // theirs, while few do.
+  const RegionStepPolicy& policy = options_.region;
+  const auto t_filter = std::chrono::steady_clock::now();
+  std::vector<uint32_t> loud;
+  bool filtered = false;
+  if (policy.filter_motion && !moved.empty()) {
+    auto back_off = [&] {
+      motion_filter_.Invalidate();
+      filter_backoff_ = std::clamp(2 * filter_backoff_, policy.filter_backoff,
+                                   std::max(policy.filter_backoff, 256));
+      filter_wait_ = filter_backoff_;
+    };
+    if (!motion_filter_.valid()) {
+      if (filter_wait_ > 0) {
+        --filter_wait_;
+      } else if (MotionFilter::EstimateLoudFraction(mesh_, pos_, next, moved,
+                                                    policy.filter_samples) <=
+                 policy.filter_estimate) {
+        motion_filter_.Certify(mesh_, pos_);
+      } else {
+        back_off();
+      }
+    }
+    if (motion_filter_.valid()) {
+      loud = motion_filter_.Loud(moved, next);
+      if (loud.size() <= policy.filter_fraction * n) {
+        filtered = true;
+        report->quiet_points =
+            static_cast<uint32_t>(moved.size() - loud.size());
+      } else {
+        back_off();
+      }
     }
   }
+  report->filter_seconds += SecondsSince(t_filter);
   std::vector<uint32_t> removed;
   std::vector<uint32_t> hints(n, kNoVertex);
   RegionStepStats stats;
-  const bool ok =
-      moved.empty() ||
-      region_executor_.Step(mesh_, pos_, next, moved, options_.region, &stats,
-                            &removed, &hints, reason, cancel);
+  const std::vector<uint32_t>& seeds = filtered ? loud : moved;
+  const bool ok = seeds.empty() || region_executor_.Step(
+                                       mesh_, pos_, next, seeds, policy, &stats,
+                                       &removed, &hints, reason, cancel);
   if (stats.cancelled) {
     *cancelled = stats.mutated || !reinsert.empty() ? 2 : 1;
   }
@@ -1047,7 +1099,25 @@ bool Triangulation::RegionUpdate(std::vector<Vec2>& next,
     return false;
   }
   reinsert.insert(reinsert.end(), removed.begin(), removed.end());
-  return FinishLocalStep(next, std::move(reinsert), hints, report, reason);
+  // The tolerances survive a step that only flipped: re-inserted and held
+  // vertices changed the mesh in ways the executor does not list.
+  const bool keep_filter =
+      filtered && reinsert.empty() && stats.held == 0 && !seeds.empty();
+  if (!keep_filter && !(filtered && seeds.empty())) {
+    motion_filter_.Invalidate();
+  }
+  if (!FinishLocalStep(next, std::move(reinsert), hints, report, reason)) {
+    motion_filter_.Invalidate();
+    return false;
+  }
+  if (keep_filter) {
+    const auto t_recertify = std::chrono::steady_clock::now();
+    motion_filter_.Recertify(mesh_, pos_, loud,
+                             region_executor_.changed_triangles());
+    report->filter_seconds += SecondsSince(t_recertify);
+    filter_backoff_ = 0;
+  }
+  return true;
 }
 
 std::vector<Vec2> Triangulation::JoinedPositions(
@@ -1068,6 +1138,7 @@ std::vector<Vec2> Triangulation::JoinedPositions(
 bool Triangulation::JoinAndLeave(const std::vector<uint32_t>& leaving,
                                  const std::vector<Vec2>& joining,
                                  StepReport* report, std::string* reason) {
+  motion_filter_.Invalidate();
   if (mesh_.empty()) {
     *reason = "fewer than two dimensions (line mode)";
     return false;

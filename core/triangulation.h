@@ -54,6 +54,7 @@
 #include "core/device/device_executor.h"
 #include "core/kinetic.h"
 #include "core/mesh.h"
+#include "core/motion_filter.h"
 #include "core/region_executor.h"
 #include "core/triangulation_view.h"
 #include "core/vec2.h"
@@ -126,8 +127,11 @@ struct StepReport {
   uint32_t local_halvings = 0;   // rounds that halved stuck vertices' motion
   uint32_t held_vertices = 0;    // region executor: vertices moved alone
   uint32_t deferred = 0;         // region executor: boundary elements
-  uint32_t removed_points = 0;   // points that left with this step
-  uint32_t added_points = 0;     // points that joined with this step
+  // Region executor with vertex tolerances (core/motion_filter.h): moved
+  // points that stayed within theirs and were not looked at.
+  uint32_t quiet_points = 0;
+  uint32_t removed_points = 0;  // points that left with this step
+  uint32_t added_points = 0;    // points that joined with this step
   FlipCounts flips;
   std::string fallback_reason;  // why the step was rebuilt, if it was
   bool renumbered = false;
@@ -139,8 +143,9 @@ struct StepReport {
   double fix_seconds = 0.0;
   double legalize_seconds = 0.0;
   double reinsert_seconds = 0.0;
-  double scan_seconds = 0.0;  // region executor: scan and hold-back
-  double held_seconds = 0.0;  // region executor: held vertices moved alone
+  double scan_seconds = 0.0;    // region executor: scan and hold-back
+  double held_seconds = 0.0;    // region executor: held vertices moved alone
+  double filter_seconds = 0.0;  // vertex tolerances: checks and upkeep
   // Device executor: host<->device copies (included in fix/legalize time
   // of nothing else) and their volume.
   double transfer_seconds = 0.0;
@@ -335,6 +340,11 @@ class Triangulation {
   std::unique_ptr<device::DeviceExecutor> device_;  // executor == kDevice
   std::string device_failure_;  // why the device failed this step, if it did
   RegionExecutor region_executor_;
+  // Vertex tolerances for the region executor; valid only while they
+  // certify mesh_ at pos_ (every other change of either invalidates them).
+  MotionFilter motion_filter_;
+  int filter_wait_ = 0;     // steps before sampling again
+  int filter_backoff_ = 0;  // the current wait after a failed filter
   bool too_tangled_ = false;
   std::vector<uint32_t> removal_touched_;
   double baseline_span_ = 0.0;
