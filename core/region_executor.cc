@@ -635,22 +635,26 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
   RegionStepPolicy pol = policy;
   pol.region_triangles = rt;
   const MeshView m = mesh.view();
+  // fn(r, lo, hi) for every region r in parallel; [lo, hi): its slots.
+  auto for_each_region = [&](auto&& fn) {
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, num_regions, 1),
+                      [&](const tbb::blocked_range<size_t>& range) {
+                        for (size_t r = range.begin(); r != range.end(); ++r) {
+                          fn(r, static_cast<uint32_t>(r * rt),
+                             static_cast<uint32_t>(
+                                 std::min<size_t>(nt, (r + 1) * size_t{rt})));
+                        }
+                      });
+  };
 
   // 1. Scan: invalid triangles and illegal edges for `to`.
   const bool dense = moved.size() > policy.sparse_fraction * n;
   if (dense) {
     const Vec2* p = cur_.data();
-    tbb::parallel_for(tbb::blocked_range<size_t>(0, num_regions, 1),
-                      [&](const tbb::blocked_range<size_t>& range) {
-                        for (size_t r = range.begin(); r != range.end(); ++r) {
-                          if (Cancelled()) return;
-                          Region& g = regions_[r];
-                          const uint32_t lo = static_cast<uint32_t>(r * rt);
-                          const uint32_t hi = static_cast<uint32_t>(
-                              std::min<size_t>(nt, (r + 1) * size_t{rt}));
-                          ScanTriangles(m, p, lo, hi, &g.invalid, &g.illegal);
-                        }
-                      });
+    for_each_region([&](size_t r, uint32_t lo, uint32_t hi) {
+      if (Cancelled()) return;
+      ScanTriangles(m, p, lo, hi, &regions_[r].invalid, &regions_[r].illegal);
+    });
   } else {
     // Mark the triangles around the moved vertices (every edge of a marked
     // triangle is re-tested by legalizing), then each region tests its
@@ -670,20 +674,13 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
                         }
                       });
     const Vec2* p = cur_.data();
-    tbb::parallel_for(tbb::blocked_range<size_t>(0, num_regions, 1),
-                      [&](const tbb::blocked_range<size_t>& range) {
-                        for (size_t r = range.begin(); r != range.end(); ++r) {
-                          Region& g = regions_[r];
-                          const uint32_t lo = static_cast<uint32_t>(r * rt);
-                          const uint32_t hi = static_cast<uint32_t>(
-                              std::min<size_t>(nt, (r + 1) * size_t{rt}));
-                          for (uint32_t t = lo; t < hi; ++t) {
-                            if (mark[t] && !rules::TriangleOk(m, p, t)) {
-                              g.invalid.push_back(t);
-                            }
-                          }
-                        }
-                      });
+    for_each_region([&](size_t r, uint32_t lo, uint32_t hi) {
+      for (uint32_t t = lo; t < hi; ++t) {
+        if (mark[t] && !rules::TriangleOk(m, p, t)) {
+          regions_[r].invalid.push_back(t);
+        }
+      }
+    });
   }
   if (Cancelled()) return stop(false);
   // 2. Hold back the culprits of triangles no flip can repair.
@@ -744,32 +741,23 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
   //    that changed (flips, held vertices, sparse motion).
   {
     const Vec2* p = cur_.data();
-    tbb::parallel_for(tbb::blocked_range<size_t>(0, num_regions, 1),
-                      [&](const tbb::blocked_range<size_t>& range) {
-                        for (size_t r = range.begin(); r != range.end(); ++r) {
-                          if (Cancelled()) return;
-                          Region& g = regions_[r];
-                          g.ClearWork();
-                          const uint32_t lo = static_cast<uint32_t>(r * rt);
-                          const uint32_t hi = static_cast<uint32_t>(
-                              std::min<size_t>(nt, (r + 1) * size_t{rt}));
-                          g.stack.assign(g.illegal.rbegin(), g.illegal.rend());
-                          for (uint32_t t = hi; t-- > lo;) {
-                            if (!tri_mark_[t]) continue;
-                            for (uint32_t e = 3 * t + 3; e-- > 3 * t;)
-                              g.stack.push_back(e);
-                          }
-                          LegalizeLoop<true>(m, p, Bounds{lo, hi}, g.stack,
-                                             g.deferred, &g.counts,
-                                             tri_mark_.data(), nullptr);
-                          // The region's changed triangles, listed while
-                          // its slots are in cache.
-                          g.marked.clear();
-                          for (uint32_t t = lo; t < hi; ++t) {
-                            if (tri_mark_[t]) g.marked.push_back(t);
-                          }
-                        }
-                      });
+    for_each_region([&](size_t r, uint32_t lo, uint32_t hi) {
+      if (Cancelled()) return;
+      Region& g = regions_[r];
+      g.ClearWork();
+      g.stack.assign(g.illegal.rbegin(), g.illegal.rend());
+      for (uint32_t t = hi; t-- > lo;) {
+        if (!tri_mark_[t]) continue;
+        for (uint32_t e = 3 * t + 3; e-- > 3 * t;) g.stack.push_back(e);
+      }
+      LegalizeLoop<true>(m, p, Bounds{lo, hi}, g.stack, g.deferred, &g.counts,
+                         tri_mark_.data(), nullptr);
+      // The region's changed triangles, listed while its slots are in cache.
+      g.marked.clear();
+      for (uint32_t t = lo; t < hi; ++t) {
+        if (tri_mark_[t]) g.marked.push_back(t);
+      }
+    });
     if (Cancelled()) return stop(true);
     Region& serial = serial_;
     serial.ClearWork();
@@ -844,22 +832,15 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
       }
     }
     std::vector<RegionStepStats> rstats(num_regions);
-    tbb::parallel_for(
-        tbb::blocked_range<size_t>(0, num_regions, 1),
-        [&](const tbb::blocked_range<size_t>& range) {
-          for (size_t r = range.begin(); r != range.end(); ++r) {
-            Region& g = regions_[r];
-            const uint32_t lo = static_cast<uint32_t>(r * rt);
-            const uint32_t hi = static_cast<uint32_t>(
-                std::min<size_t>(nt, (r + 1) * size_t{rt}));
-            for (uint32_t v : g.stack) {
-              if (Cancelled() || !MoveHeldInRegion(mesh, v, to[v], pol, lo, hi,
-                                                   &rstats[r], &g.deferred)) {
-                g.waiting.push_back(v);
-              }
-            }
-          }
-        });
+    for_each_region([&](size_t r, uint32_t lo, uint32_t hi) {
+      Region& g = regions_[r];
+      for (uint32_t v : g.stack) {
+        if (Cancelled() || !MoveHeldInRegion(mesh, v, to[v], pol, lo, hi,
+                                             &rstats[r], &g.deferred)) {
+          g.waiting.push_back(v);
+        }
+      }
+    });
     if (Cancelled()) return stop(true);
     std::vector<uint32_t> late;
     for (size_t r = 0; r < num_regions; ++r) {
