@@ -90,11 +90,6 @@ class MotionFilter {
                                      const std::vector<uint32_t>& moved,
                                      uint32_t samples);
 
-  uint64_t bytes() const {
-    return ref_.capacity() * sizeof(Vec2) + tol_.capacity() * sizeof(double) +
-           reset_.capacity();
-  }
-
  private:
   std::vector<Vec2> ref_;
   std::vector<double> tol_;

@@ -1099,18 +1099,19 @@ bool Triangulation::RegionUpdate(std::vector<Vec2>& next,
     return false;
   }
   reinsert.insert(reinsert.end(), removed.begin(), removed.end());
-  // The tolerances survive a step that only flipped: re-inserted and held
-  // vertices changed the mesh in ways the executor does not list.
-  const bool keep_filter =
-      filtered && reinsert.empty() && stats.held == 0 && !seeds.empty();
-  if (!keep_filter && !(filtered && seeds.empty())) {
+  // The tolerances stay valid when every moved vertex was quiet (nothing
+  // changed) and, recertified, after a step that only flipped: re-inserted
+  // and held vertices change the mesh in ways the executor does not list
+  // (and a failed re-insertion ends in a rebuild, which invalidates them).
+  const bool recertify =
+      filtered && !seeds.empty() && reinsert.empty() && stats.held == 0;
+  if (!filtered || (!seeds.empty() && !recertify)) {
     motion_filter_.Invalidate();
   }
   if (!FinishLocalStep(next, std::move(reinsert), hints, report, reason)) {
-    motion_filter_.Invalidate();
     return false;
   }
-  if (keep_filter) {
+  if (recertify) {
     const auto t_recertify = std::chrono::steady_clock::now();
     motion_filter_.Recertify(mesh_, pos_, loud,
                              region_executor_.changed_triangles());
