@@ -1122,39 +1122,48 @@ bool Triangulation::RegionUpdate(std::vector<Vec2>& next,
 }
 
 std::vector<Vec2> Triangulation::JoinedPositions(
-    const std::vector<uint32_t>& leaving,
-    const std::vector<Vec2>& joining) const {
+    const std::vector<uint32_t>& leaving, const std::vector<Vec2>& joining,
+    const std::vector<Vec2>& by_int) const {
   const uint32_t n = size();
   std::vector<uint8_t> gone(n, 0);
   for (uint32_t ext : leaving) gone[ext] = 1;
   std::vector<Vec2> out;
   out.reserve(n - leaving.size() + joining.size());
   for (uint32_t ext = 0; ext < n; ++ext) {
-    if (!gone[ext]) out.push_back(pos_[int_of_ext_[ext]]);
+    if (!gone[ext]) out.push_back(by_int[int_of_ext_[ext]]);
   }
   out.insert(out.end(), joining.begin(), joining.end());
   return out;
+}
+
+bool Triangulation::JoinsByRebuild(uint64_t leaving, uint64_t joining,
+                                   std::string* reason) const {
+  if (mesh_.empty()) {
+    *reason = "fewer than two dimensions (line mode)";
+    return true;
+  }
+  // Removal and insertion cost about 6 us per point here, a CGAL build
+  // about 1 us per point: past an eighth of the points a rebuild is cheaper.
+  const uint64_t changes = leaving + joining;
+  if (changes > kLocalChangesMin && 8 * changes > uint64_t{size()} + joining) {
+    *reason = absl::StrCat(leaving, " points leave and ", joining,
+                           " join (over 1/8 of the points): rebuilding is "
+                           "cheaper");
+    return true;
+  }
+  return false;
 }
 
 bool Triangulation::JoinAndLeave(const std::vector<uint32_t>& leaving,
                                  const std::vector<Vec2>& joining,
                                  StepReport* report, std::string* reason) {
   motion_filter_.Invalidate();
-  if (mesh_.empty()) {
+  if (mesh_.empty()) {  // the moves of this step left a line
     *reason = "fewer than two dimensions (line mode)";
     return false;
   }
   const uint32_t n = size();
   const uint32_t m = static_cast<uint32_t>(joining.size());
-  // Removal and insertion cost about 6 us per point here, a CGAL build
-  // about 1 us per point: past an eighth of the points a rebuild is cheaper.
-  const uint64_t changes = uint64_t{m} + leaving.size();
-  if (changes > kLocalChangesMin && 8 * changes > uint64_t{n} + m) {
-    *reason = absl::StrCat(leaving.size(), " points leave and ", m,
-                           " join (over 1/8 of the points): rebuilding is "
-                           "cheaper");
-    return false;
-  }
   MeshChangedOnHost();
   // 1. Leave. A hidden coincident point leaves its chain; a site's
   //    representative hands the mesh vertex to the next point of its site;
@@ -1439,6 +1448,39 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
     adjacency_->hints.reset();
   }
 
+  // Many points leave or join (or the points lie on a line): the step is
+  // one rebuild of its final positions, built aside, so that a stopped one
+  // leaves the previous step as it was.
+  std::string join_reason;
+  if (changes &&
+      JoinsByRebuild(batch.remove.size(), batch.add.size(), &join_reason)) {
+    bool built = false;
+    Run([&] {
+      built = Rebuild(
+          JoinedPositions(batch.remove, batch.add, no_moves ? pos_ : next),
+          cancel);
+    });
+    if (!built) return cancel->Check("step");  // fired, so not OK
+    ++steps_;
+    report.path = UpdatePath::kRebuilt;
+    report.fallback_reason = join_reason;
+    report.renumbered = true;
+    report.removed_points = static_cast<uint32_t>(batch.remove.size());
+    report.added_points = static_cast<uint32_t>(batch.add.size());
+    report.num_sites = num_sites();
+    report.num_points = size();
+    report.seconds = SecondsSince(start);
+    return report;
+  }
+  // Back to the previous step after an attempt that changed the mesh was
+  // stopped: the positions (pos_) are unchanged; the mesh and the
+  // coincident-point chains are rebuilt from them (not stoppable: it is
+  // what a stop must leave).
+  auto restore_previous = [&] {
+    std::vector<Vec2> by_ext(n);
+    for (uint32_t i = 0; i < n; ++i) by_ext[ext_of_int_[i]] = pos_[i];
+    Rebuild(by_ext);
+  };
   int cancelled = 0;
   if (moved.empty()) ++steps_;
   if (!moved.empty())
@@ -1458,13 +1500,7 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
                  : LocalUpdate(next, moved, cancel, &report, &reason,
                                &cancelled);
       }
-      if (cancelled == 2) {
-        // Back to the previous step: positions (pos_) are unchanged; the
-        // mesh and the coincident-point chains are rebuilt from them.
-        std::vector<Vec2> by_ext(n);
-        for (uint32_t i = 0; i < n; ++i) by_ext[ext_of_int_[i]] = pos_[i];
-        Rebuild(by_ext);
-      }
+      if (cancelled == 2) restore_previous();
       if (cancelled) return;
       ++steps_;
       if (ok) {
@@ -1480,8 +1516,11 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
       } else {
         std::vector<Vec2> by_ext(n);
         for (uint32_t i = 0; i < n; ++i) by_ext[ext_of_int_[i]] = next[i];
-        if (!Rebuild(by_ext, untouched ? cancel : nullptr)) {
-          --steps_;  // stopped: the previous step stays, untouched
+        if (!Rebuild(by_ext, cancel)) {
+          // Stopped: the previous step stays (restored if the attempt had
+          // changed the mesh).
+          if (!untouched) restore_previous();
+          --steps_;
           cancelled = 1;
           return;
         }
@@ -1506,7 +1545,9 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
           report.renumbered = true;
         }
       } else {
-        Rebuild(JoinedPositions(batch.remove, batch.add));
+        // Degenerate leftovers only (fewer than three positions, or a
+        // line): a rebuild of few or collinear points.
+        Rebuild(JoinedPositions(batch.remove, batch.add, pos_));
         report.path = UpdatePath::kRebuilt;
         report.fallback_reason =
             report.fallback_reason.empty()

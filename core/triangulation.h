@@ -303,13 +303,22 @@ class Triangulation {
   // Removes the points `leaving` (external ids) and inserts `joining` into
   // the mesh locally (planar mode), then renumbers the points (see
   // DisplacementBatch). False (with reason) when the mesh cannot be
-  // updated locally; the caller then rebuilds with JoinedPositions().
+  // updated locally (degenerate leftovers: JoinsByRebuild() has taken the
+  // rest); the caller then rebuilds with JoinedPositions().
   bool JoinAndLeave(const std::vector<uint32_t>& leaving,
                     const std::vector<Vec2>& joining, StepReport* report,
                     std::string* reason);
-  // Positions after `leaving` leave and `joining` join, in the new order.
+  // True (with reason) when `leaving` points leaving and `joining` joining
+  // are cheaper to make by a rebuild than locally, or cannot be made
+  // locally (line mode).
+  bool JoinsByRebuild(uint64_t leaving, uint64_t joining,
+                      std::string* reason) const;
+  // Positions after `leaving` leave and `joining` join, in the new order;
+  // the points that stay are at by_int (internal order: pos_ or a step's
+  // next positions).
   std::vector<Vec2> JoinedPositions(const std::vector<uint32_t>& leaving,
-                                    const std::vector<Vec2>& joining) const;
+                                    const std::vector<Vec2>& joining,
+                                    const std::vector<Vec2>& by_int) const;
   // sites_ and has_duplicates_ from rep_ and dup_next_.
   void RefreshSites();
   double MeanEdgeSpan() const;

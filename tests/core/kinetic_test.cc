@@ -416,19 +416,19 @@ TEST(Kinetic, CancelledStepLeavesThePreviousStep) {
 // between them; the new triangulation is built aside): the previous step
 // stays, exactly. (The round executor's fallback rebuilds follow a local
 // attempt that changed the mesh, so they run to the end.)
-TEST(Kinetic, CancelledRebuildLeavesThePreviousStep) {
-  const size_t n = 70000;
-  auto pts = testing::UniformPoints(n, 131);
-  auto t = Triangulation::Create(pts, testing::ExecutorOptions());
-  ASSERT_TRUE(t.ok());
-  std::mt19937_64 rng(132);
-  const double spacing = 1.0 / std::sqrt(double(n));
-  const DisplacementBatch step = Brownian(n, 3 * spacing, rng);
+// Steps whose last stretch is a rebuild: the rebuild polls the token (no
+// stretch of the step goes without a poll), and a token that fires at any
+// of its last polls leaves the previous step exactly. Returns the report of
+// the step applied in full at the end.
+StepReport ExpectStoppableToTheEnd(const TriangulationOptions& options,
+                                   const std::vector<Vec2>& pts,
+                                   const DisplacementBatch& step) {
+  auto t = Triangulation::Create(pts, options);
+  EXPECT_TRUE(t.ok());
+  if (!t.ok()) return {};
   const auto before = t->Positions();
   const auto before_edges = EdgesAsPositions(*t);
-  // How often a whole step polls, and when: the last polls are the
-  // rebuild's, and no stretch of the step (most of it is the rebuild) goes
-  // without one.
+  // How often a whole step polls, and when.
   std::atomic<int> total{0};
   {
     auto copy = t->Clone();
@@ -445,9 +445,9 @@ TEST(Kinetic, CancelledRebuildLeavesThePreviousStep) {
         Clock::time_point::max(), Clock::duration::zero());
     auto r = copy.ApplyDisplacements(step, &counting);
     const Clock::time_point end = Clock::now();
-    ASSERT_TRUE(r.ok()) << r.status();
-    if (!testing::kRegionExecutor) GTEST_SKIP() << "round executor";
-    ASSERT_EQ(r->path, UpdatePath::kRebuilt) << "the cost model chose local";
+    EXPECT_TRUE(r.ok()) << r.status();
+    if (!r.ok()) return {};
+    EXPECT_EQ(r->path, UpdatePath::kRebuilt) << "no rebuild";
     at.push_back(end);
     Clock::duration longest = at.front() - start;
     for (size_t i = 1; i < at.size(); ++i) {
@@ -466,19 +466,66 @@ TEST(Kinetic, CancelledRebuildLeavesThePreviousStep) {
                       CancelToken::Clock::time_point::max(),
                       CancelToken::Clock::duration::zero());
     auto r = t->ApplyDisplacements(step, &token);
-    ASSERT_EQ(r.status().code(), absl::StatusCode::kCancelled)
+    EXPECT_EQ(r.status().code(), absl::StatusCode::kCancelled)
         << "fired " << back << " polls before the end: " << r.status();
-    ASSERT_EQ(t->steps(), 0u);
-    ASSERT_EQ(t->Positions(), before);
-    ASSERT_TRUE(t->Validate().ok());
-    ASSERT_EQ(EdgesAsPositions(*t), before_edges);
+    EXPECT_EQ(t->steps(), 0u);
+    EXPECT_EQ(t->Positions(), before);
+    EXPECT_TRUE(t->Validate().ok());
+    EXPECT_EQ(EdgesAsPositions(*t), before_edges);
   }
   auto r = t->ApplyDisplacements(step);
-  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_TRUE(r.ok()) << r.status();
+  if (!r.ok()) return {};
   EXPECT_EQ(r->path, UpdatePath::kRebuilt);
   EXPECT_EQ(t->steps(), 1u);
   EXPECT_TRUE(t->Validate().ok());
   EXPECT_EQ(EdgesAsPositions(*t), CgalDelaunayEdges(t->Positions()));
+  return *r;
+}
+
+TEST(Kinetic, CancelledRebuildLeavesThePreviousStep) {
+  if (!testing::kRegionExecutor) GTEST_SKIP() << "round executor";
+  const size_t n = 70000;
+  std::mt19937_64 rng(132);
+  const double spacing = 1.0 / std::sqrt(double(n));
+  // Brownian 3 spacings: the cost model rebuilds.
+  ExpectStoppableToTheEnd(testing::ExecutorOptions(),
+                          testing::UniformPoints(n, 131),
+                          Brownian(n, 3 * spacing, rng));
+}
+
+// A step whose local attempt changed the mesh and then failed (here: one
+// fixing pass allowed, and the cost model never rebuilds) falls back to a
+// rebuild, which polls too; stopped, the mesh is restored.
+TEST(Kinetic, CancelledFallbackAfterAFailedAttemptLeavesThePreviousStep) {
+  if (!testing::kRegionExecutor) GTEST_SKIP() << "round executor";
+  const size_t n = 70000;
+  std::mt19937_64 rng(133);
+  const double spacing = 1.0 / std::sqrt(double(n));
+  TriangulationOptions o = testing::ExecutorOptions();
+  o.region.max_passes = 1;
+  o.region.held_vertex_cost = 0.0;
+  const StepReport r = ExpectStoppableToTheEnd(
+      o, testing::UniformPoints(n, 134), Brownian(n, 0.4 * spacing, rng));
+  EXPECT_NE(r.fallback_reason.find("fixing"), std::string::npos)
+      << r.fallback_reason;
+}
+
+// Many points leave and join: one rebuild of the final positions, built
+// aside (before: the moves, then a rebuild that did not poll).
+TEST(Kinetic, CancelledJoinRebuildLeavesThePreviousStep) {
+  const size_t n = 70000;
+  std::mt19937_64 rng(135);
+  const double spacing = 1.0 / std::sqrt(double(n));
+  DisplacementBatch step = Brownian(n, 0.05 * spacing, rng);
+  for (uint32_t i = 0; i < 12000; ++i) step.remove.push_back(5 * i + 1);
+  step.add = testing::UniformPoints(8000, 136);
+  const StepReport r = ExpectStoppableToTheEnd(
+      testing::ExecutorOptions(), testing::UniformPoints(n, 137), step);
+  EXPECT_EQ(r.removed_points, 12000u);
+  EXPECT_EQ(r.added_points, 8000u);
+  EXPECT_NE(r.fallback_reason.find("rebuilding is cheaper"), std::string::npos)
+      << r.fallback_reason;
 }
 
 // Regression (issue 13): two points that move onto the same empty position in
