@@ -6,6 +6,7 @@
 #include <cmath>
 #include <cstdint>
 #include <memory>
+#include <mutex>
 #include <optional>
 #include <queue>
 
@@ -211,6 +212,11 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
   std::vector<uint64_t> row_start(nq, 0);
   std::atomic<uint64_t> total{0};
   std::atomic<bool> stop{false}, exceeded{false};
+  // limits.admit, one call at a time: what it granted, and its refusal.
+  std::mutex admit_mu;
+  std::atomic<uint64_t> admitted{0};
+  absl::Status refused;
+  const bool counted = limits.max_total_results || limits.admit;
   if (t.num_sites() > 0) {
     const TriangulationView v = t.query_view();
     t.Run([&] {
@@ -276,14 +282,35 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
               }
               // The limit is checked inside rows and as rows complete:
               // work stops as soon as the total passes it.
-              if (end == kRowOverBudget || row.size() > budget.cap ||
-                  (limits.max_total_results &&
-                   total.fetch_add(row.size(), std::memory_order_relaxed) +
-                           row.size() >
-                       limits.max_total_results)) {
+              if (end == kRowOverBudget || row.size() > budget.cap) {
                 exceeded.store(true, std::memory_order_relaxed);
                 stop.store(true, std::memory_order_relaxed);
                 return;
+              }
+              const uint64_t kept =
+                  counted
+                      ? total.fetch_add(row.size(), std::memory_order_relaxed) +
+                            row.size()
+                      : 0;
+              if (limits.max_total_results && kept > limits.max_total_results) {
+                exceeded.store(true, std::memory_order_relaxed);
+                stop.store(true, std::memory_order_relaxed);
+                return;
+              }
+              if (limits.admit &&
+                  kept > admitted.load(std::memory_order_acquire)) {
+                std::lock_guard<std::mutex> lock(admit_mu);
+                if (kept > admitted.load(std::memory_order_relaxed)) {
+                  const uint64_t step = QueryLimits::kAdmitStep;
+                  const uint64_t grant = (kept + step - 1) / step * step;
+                  absl::Status s = refused.ok() ? limits.admit(grant) : refused;
+                  if (!s.ok()) {
+                    refused = s;
+                    stop.store(true, std::memory_order_relaxed);
+                    return;
+                  }
+                  admitted.store(grant, std::memory_order_release);
+                }
               }
               sorted_truncated[j] = end == kRowTruncated ? 1 : 0;
               sorted_size[j] = row.size();
@@ -304,6 +331,7 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
     });
   }
   if (exceeded.load()) return ResultLimitError(limits.max_total_results);
+  if (!refused.ok()) return refused;
   if (stop.load() && limits.cancel != nullptr) {
     if (absl::Status s = limits.cancel->Check("query"); !s.ok()) return s;
   }

@@ -7,6 +7,7 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <functional>
 #include <vector>
 
 #include "absl/status/status.h"
@@ -57,6 +58,14 @@ struct QueryLimits {
   // Polled per row and every few thousand sites inside a row; when it fires
   // the query stops and returns CANCELLED or DEADLINE_EXCEEDED.
   const CancelToken* cancel = nullptr;
+  // Optional: asked before the rows kept so far pass what it last granted,
+  // with the new count of results rounded up to a multiple of kAdmitStep
+  // (calls come one at a time, with growing counts); a non-OK answer stops
+  // the query, which returns it. The server reserves an answer's memory
+  // from its budget this way: the reservation grows with the answer
+  // instead of following a guess made before it.
+  std::function<absl::Status(uint64_t results)> admit;
+  static constexpr uint64_t kAdmitStep = uint64_t{1} << 18;
 };
 
 // RESOURCE_EXHAUSTED for a query whose rows passed max_total_results: the

@@ -35,15 +35,27 @@ void MemoryBudget::Reservation::Release() {
 
 absl::StatusOr<MemoryBudget::Reservation> MemoryBudget::Reserve(
     uint64_t bytes, const std::string& what) {
+  Reservation r;
+  if (absl::Status s = GrowTo(&r, bytes, what); !s.ok()) return s;
+  return r;
+}
+
+absl::Status MemoryBudget::GrowTo(Reservation* r, uint64_t bytes,
+                                  const std::string& what) {
+  if (bytes <= r->bytes_) return absl::OkStatus();
+  const uint64_t more = bytes - r->bytes_;
   absl::MutexLock lock(&mu_);
-  if (limit_ > 0 && (bytes > limit_ || used_ > limit_ - bytes)) {
+  if (limit_ > 0 && (more > limit_ || used_ > limit_ - more)) {
     return absl::ResourceExhaustedError(absl::StrCat(
-        what, ": needs about ", bytes >> 20, " MiB, but only ",
-        (limit_ - std::min(used_, limit_)) >> 20, " of the server's ",
-        limit_ >> 20, " MiB memory budget (--max_memory_mb) are free"));
+        what, ": needs about ", (more + (1 << 20) - 1) >> 20,
+        " MiB more, but only ", (limit_ - std::min(used_, limit_)) >> 20,
+        " of the server's ", limit_ >> 20,
+        " MiB memory budget (--max_memory_mb) are free"));
   }
-  used_ += bytes;
-  return Reservation(this, bytes);
+  used_ += more;
+  r->budget_ = this;
+  r->bytes_ = bytes;
+  return absl::OkStatus();
 }
 
 uint64_t MemoryBudget::used() const {

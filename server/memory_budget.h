@@ -20,6 +20,13 @@ class MemoryBudget {
   // readers hold the current one under kCopyBytesPerPoint.
   static constexpr uint64_t kSessionBytesPerPoint = 350;
   static constexpr uint64_t kCopyBytesPerPoint = 160;
+  // A query block: its rows' bookkeeping (the queries, their order, sizes
+  // and offsets: ~100 bytes) and each result kept twice (the rows as they
+  // are found, then the answer), 4 bytes per id and 8 per distance.
+  static constexpr uint64_t kQueryBytesPerRow = 100;
+  static uint64_t QueryBytesPerResult(bool distances) {
+    return 2 * (4 + (distances ? 8 : 0));
+  }
 
   // limit_bytes == 0: no limit.
   explicit MemoryBudget(uint64_t limit_bytes) : limit_(limit_bytes) {}
@@ -50,6 +57,10 @@ class MemoryBudget {
   // RESOURCE_EXHAUSTED (naming `what`, the estimate and what is left) when
   // `bytes` more would pass the limit.
   absl::StatusOr<Reservation> Reserve(uint64_t bytes, const std::string& what);
+  // Grows `r` (empty, or a reservation of this budget) to `bytes` in all;
+  // RESOURCE_EXHAUSTED (as Reserve) when the growth does not fit, and `r`
+  // stays as it was. Smaller than r's bytes: nothing changes.
+  absl::Status GrowTo(Reservation* r, uint64_t bytes, const std::string& what);
 
   uint64_t limit() const { return limit_; }
   uint64_t used() const;

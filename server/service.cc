@@ -774,13 +774,12 @@ grpc::Status KinetriServiceImpl::StreamQueryFromBytes(
         "needs no stream: use Query)"));
   }
   const uint64_t max_targets = registry_->limits().max_points_per_session;
-  std::vector<MemoryBudget::Reservation> held;
+  MemoryBudget::Reservation held;
   auto targets = [&] {
     return req.has_positions() ? uint64_t(req.positions().xy_size() / 2)
                                : uint64_t(req.point_ids().ids_size() +
                                           req.point_ids().client_ids_size());
   };
-  uint64_t reserved = 0;
   while (true) {
     const uint64_t count = targets();
     if (count > max_targets) {
@@ -791,12 +790,11 @@ grpc::Status KinetriServiceImpl::StreamQueryFromBytes(
     }
     // 16 bytes per target held, 2x for the answer's bookkeeping.
     const uint64_t need = 32 * count;
-    if (need > reserved) {
-      const uint64_t step = std::max<uint64_t>(need - reserved, 8 << 20);
-      auto r = budget_->Reserve(step, "StreamQuery targets");
-      if (!r.ok()) return rpc.Done(ToGrpc(r.status()));
-      reserved += step;
-      held.push_back(*std::move(r));
+    if (need > held.bytes()) {
+      absl::Status r = budget_->GrowTo(
+          &held, std::max<uint64_t>(need, held.bytes() + (8 << 20)),
+          "StreamQuery targets");
+      if (!r.ok()) return rpc.Done(ToGrpc(r));
     }
     got = messages.Read(&more);
     if (!got.ok()) return rpc.Done(ToGrpc(got.status()));
@@ -896,8 +894,18 @@ grpc::Status KinetriServiceImpl::RunQuery(
   // while rows are computed or streamed, and steps never wait for them.
   const Session::Snapshot snap = session.Read();
   const core::Triangulation& t = *snap.tri;
+  // An answer's memory is reserved from the budget before it is allocated:
+  // the targets' ids here, each block's rows before they are computed and
+  // its results as they are kept (core::QueryLimits::admit, per 256K).
+  MemoryBudget::Reservation targets_memory;
   std::vector<uint32_t> ids;
   if (req->has_all_points()) {
+    if (absl::Status s = budget_->GrowTo(&targets_memory,
+                                         sizeof(uint32_t) * uint64_t{t.size()},
+                                         "query targets");
+        !s.ok()) {
+      return ToGrpc(s);
+    }
     ids.resize(t.size());
     for (uint32_t i = 0; i < t.size(); ++i) ids[i] = i;
   } else if (req->has_point_ids()) {
@@ -962,6 +970,24 @@ grpc::Status KinetriServiceImpl::RunQuery(
     const absl::Span<const core::Vec2> pos_block =
         by_id ? absl::Span<const core::Vec2>()
               : absl::MakeConstSpan(positions).subspan(first, count);
+    MemoryBudget::Reservation block_memory;
+    const uint64_t row_bytes = count * MemoryBudget::kQueryBytesPerRow;
+    const uint64_t result_bytes =
+        MemoryBudget::QueryBytesPerResult(!radius || req->include_distances());
+    // All nearest neighbours: one result per row, known now.
+    if (absl::Status s = budget_->GrowTo(
+            &block_memory, row_bytes + (all_nearest ? count * result_bytes : 0),
+            "query rows");
+        !s.ok()) {
+      return ToGrpc(s);
+    }
+    bool memory_refused = false;
+    limits.admit = [&](uint64_t results) {
+      absl::Status s = budget_->GrowTo(
+          &block_memory, row_bytes + results * result_bytes, "query answer");
+      memory_refused = !s.ok();
+      return s;
+    };
     auto compute = [&] {
       const auto start = Clock::now();
       if (radius) {
@@ -993,7 +1019,8 @@ grpc::Status KinetriServiceImpl::RunQuery(
       compute();
     }
     if (!result.ok()) {
-      if (result.status().code() == absl::StatusCode::kResourceExhausted) {
+      if (result.status().code() == absl::StatusCode::kResourceExhausted &&
+          !memory_refused) {
         return (grpc::Status(
             grpc::StatusCode::RESOURCE_EXHAUSTED,
             absl::StrCat("query stopped: its rows hold more than ",
@@ -1038,8 +1065,18 @@ grpc::Status KinetriServiceImpl::ExportTriangulation(
   std::vector<std::array<uint32_t, 3>> tris;
   std::shared_ptr<const PointIdMap> ids;
   uint64_t step = 0;
+  MemoryBudget::Reservation memory;
   {
     const Session::Snapshot snap = (*s)->Read();
+    // The copies below (positions, then about two triangles per point),
+    // reserved before they are made.
+    const uint64_t n = snap.tri->size();
+    if (absl::Status st = budget_->GrowTo(
+            &memory, n * (sizeof(core::Vec2) + 2 * 3 * sizeof(uint32_t)),
+            "ExportTriangulation");
+        !st.ok()) {
+      return rpc.Done(ToGrpc(st));
+    }
     step = snap.step;
     pos = snap.tri->Positions();
     tris = snap.tri->Triangles();

@@ -431,6 +431,7 @@ class QueryEngine {
         max_block_memory, large_blocks ? kMaxBlockLarge : kMaxBlockSmall);
     size_t block = std::min<size_t>(kFirstBlock, max_block);
     uint64_t total = 0;
+    uint64_t granted = 0;  // by q.limits.admit
     for (size_t begin = 0; begin < nq;) {
       if (cancel != nullptr) {
         if (absl::Status s = cancel->Check("query"); !s.ok()) return s;
@@ -442,6 +443,11 @@ class QueryEngine {
       const uint64_t rows_total =
           knn ? KnnBlock(kk, nb, w) : RadiusBlock(q, nb, remaining, w);
       if (limit && rows_total > remaining) return ResultLimitError(limit);
+      if (q.limits.admit && total + rows_total > granted) {
+        const uint64_t step = QueryLimits::kAdmitStep;
+        granted = (total + rows_total + step - 1) / step * step;
+        if (absl::Status s = q.limits.admit(granted); !s.ok()) return s;
+      }
       // Append the block's rows.
       for (uint32_t i = 0; i < nb; ++i) {
         out->offsets[begin + i + 1] = total + w.h_offsets[i + 1];

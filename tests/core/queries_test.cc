@@ -272,6 +272,56 @@ TEST(Queries, TotalLimitStopsTheWork) {
   EXPECT_EQ(ok->ids.size(), 10000u);
 }
 
+// QueryLimits::admit is asked, one call at a time, for growing multiples of
+// kAdmitStep covering every result kept; its refusal stops the query and is
+// what the query returns.
+TEST(Queries, AdmitGrowsWithTheAnswer) {
+  const auto pts = testing::UniformPoints(10000, 33);
+  auto t = Make(pts);
+  ASSERT_TRUE(t.ok());
+  std::vector<uint32_t> ids(pts.size());
+  std::iota(ids.begin(), ids.end(), 0u);
+  const uint64_t step = QueryLimits::kAdmitStep;
+  for (bool knn : {false, true}) {
+    std::vector<uint64_t> grants;
+    std::atomic<int> inside{0};
+    bool overlapped = false;
+    QueryLimits limits;
+    limits.admit = [&](uint64_t results) {
+      overlapped |= inside.fetch_add(1) != 0;
+      std::this_thread::sleep_for(std::chrono::microseconds(200));
+      grants.push_back(results);
+      inside.fetch_sub(1);
+      return absl::OkStatus();
+    };
+    // ~126 results per row (radius) or 64: 0.6-1.3M in all.
+    auto r = knn ? KNearestOfPoints(*t, ids, 64, false, limits)
+                 : WithinRadiusOfPoints(*t, ids, 0.063, false, 0, limits);
+    ASSERT_TRUE(r.ok()) << r.status();
+    const uint64_t total = r->ids.size();
+    ASSERT_GT(total, 2 * step);
+    ASSERT_FALSE(grants.empty());
+    EXPECT_FALSE(overlapped);
+    for (size_t i = 0; i < grants.size(); ++i) {
+      EXPECT_EQ(grants[i] % step, 0u);
+      if (i > 0) EXPECT_GT(grants[i], grants[i - 1]);
+    }
+    EXPECT_GE(grants.back(), total);
+    EXPECT_LT(grants.back(), total + step);
+    // Refused at the second grant: the query stops with that status.
+    int calls = 0;
+    limits.admit = [&](uint64_t) {
+      return ++calls == 2 ? absl::ResourceExhaustedError("no room")
+                          : absl::OkStatus();
+    };
+    auto refused = knn ? KNearestOfPoints(*t, ids, 64, false, limits)
+                       : WithinRadiusOfPoints(*t, ids, 0.063, false, 0, limits);
+    EXPECT_EQ(refused.status().code(), absl::StatusCode::kResourceExhausted);
+    EXPECT_EQ(refused.status().message(), "no room");
+    EXPECT_EQ(calls, 2);
+  }
+}
+
 // A cut radius row is the closest max_results points even when the disk
 // holds far more sites than that (computed by the bounded k-NN expansion).
 TEST(Queries, CutRadiusRowsOfHugeDisks) {

@@ -487,11 +487,93 @@ TEST(HardeningMemory, CreationsAreAdmittedAgainstTheBudget) {
   EXPECT_TRUE(again.ok()) << again.status();
 }
 
+// Server memory (kB) from /proc/PID/status: the resident size now
+// ("VmRSS") or its peak ("VmHWM").
+long ProcStatusKb(int pid, const char* field) {
+  const std::string path = "/proc/" + std::to_string(pid) + "/status";
+  FILE* f = std::fopen(path.c_str(), "r");
+  char line[256];
+  long kb = -1;
+  const std::string format = std::string(field) + ": %ld kB";
+  while (f && std::fgets(line, sizeof line, f)) {
+    if (std::sscanf(line, format.c_str(), &kb) == 1) break;
+  }
+  if (f) std::fclose(f);
+  return kb;
+}
+
+// Defect 6, answers: a query's rows and results are reserved from the
+// budget before they are kept, so an answer that does not fit is refused
+// while it is built (the server's peak stays near the budget), and its
+// reservation is returned.
+TEST(HardeningMemory, QueryAnswersAreAdmittedAgainstTheBudget) {
+  testing::ServerProcess server(KINETRI_SERVER_BINARY,
+                                {"--threads=2", "--max_memory_mb=100"});
+  ASSERT_TRUE(server.ok());
+  Client client(server.target());
+  const size_t n = 100000;
+  auto s = client.CreateSession(UniformXY(n, 31), v1::SessionOptions(), "q");
+  ASSERT_TRUE(s.ok()) << s.status();
+  const long peak_before = ProcStatusKb(server.pid(), "VmHWM");
+  // ~785 results per row, 24 bytes each with distances: the first block
+  // alone (65536 rows) would hold 1.2 GB; the result limit allows 200M.
+  v1::QueryRequest big;
+  big.set_session(s->name());
+  big.set_kind(v1::QUERY_KIND_RADIUS);
+  big.set_radius(0.05);
+  big.set_include_distances(true);
+  big.mutable_all_points();
+  const auto t0 = Clock::now();
+  auto refused = client.Query(big);
+  const double refused_ms = MsSince(t0);
+  const long peak_after = ProcStatusKb(server.pid(), "VmHWM");
+  std::printf("refused after %.0f ms; server peak %ld -> %ld MB: %s\n",
+              refused_ms, peak_before / 1024, peak_after / 1024,
+              refused.status().ToString().c_str());
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_NE(refused.status().message().find("memory budget"), std::string::npos)
+      << refused.status();
+  EXPECT_LT(peak_after - peak_before, 100 * 1024) << "kB";
+  // What fits is answered, and the refused query's reservation is back:
+  // another 100K-point session (35 MB) fits beside the first.
+  v1::QueryRequest knn;
+  knn.set_session(s->name());
+  knn.set_kind(v1::QUERY_KIND_K_NEAREST);
+  knn.set_k(4);
+  knn.mutable_all_points();
+  auto answer = client.Query(knn);
+  ASSERT_TRUE(answer.ok()) << answer.status();
+  EXPECT_EQ(answer->offsets.size(), n + 1);
+  auto second =
+      client.CreateSession(UniformXY(n, 32), v1::SessionOptions(), "q2");
+  EXPECT_TRUE(second.ok()) << second.status();
+}
+
+// Export copies a step's positions and triangles (40 bytes per point):
+// reserved first, refused when they do not fit.
+TEST(HardeningMemory, ExportIsAdmittedAgainstTheBudget) {
+  testing::ServerProcess server(KINETRI_SERVER_BINARY,
+                                {"--threads=2", "--max_memory_mb=37"});
+  ASSERT_TRUE(server.ok());
+  Client client(server.target());
+  // 35 MB of 37 reserved by the session; the export needs 4.
+  auto s =
+      client.CreateSession(UniformXY(100000, 33), v1::SessionOptions(), "e");
+  ASSERT_TRUE(s.ok()) << s.status();
+  auto mesh = client.Export(s->name());
+  EXPECT_EQ(mesh.status().code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_NE(mesh.status().message().find("ExportTriangulation"),
+            std::string::npos)
+      << mesh.status();
+}
+
 // With no room in the budget for a snapshot copy, a step waits for the
-// readers of the current step instead, and still applies.
+// readers of the current step instead, and still applies. (The session
+// holds 35 MB, the query's one block ~36 MB while it is answered, a copy
+// would need 16 MB more.)
 TEST(HardeningMemory, StepWithoutRoomForACopyWaitsForReaders) {
   testing::ServerProcess server(KINETRI_SERVER_BINARY,
-                                {"--threads=2", "--max_memory_mb=40"});
+                                {"--threads=2", "--max_memory_mb=80"});
   ASSERT_TRUE(server.ok());
   Client client(server.target());
   const size_t n = 100000;
@@ -505,7 +587,9 @@ TEST(HardeningMemory, StepWithoutRoomForACopyWaitsForReaders) {
     q.set_kind(v1::QUERY_KIND_RADIUS);
     q.set_radius(0.01);
     q.mutable_all_points();
-    EXPECT_TRUE(c.Query(q).ok());
+    q.set_rows_per_chunk(n);  // one block: the reservation is held throughout
+    auto answer = c.Query(q);
+    EXPECT_TRUE(answer.ok()) << answer.status();
     query_done = Clock::now();
   });
   std::this_thread::sleep_for(std::chrono::milliseconds(150));
@@ -526,18 +610,7 @@ TEST(HardeningMemory, DeleteReturnsMemory) {
   testing::ServerProcess server(KINETRI_SERVER_BINARY, {"--threads=2"});
   ASSERT_TRUE(server.ok());
   Client client(server.target());
-  auto rss_mb = [&] {
-    const std::string path =
-        "/proc/" + std::to_string(server.pid()) + "/status";
-    FILE* f = std::fopen(path.c_str(), "r");
-    char line[256];
-    long kb = -1;
-    while (f && std::fgets(line, sizeof line, f)) {
-      if (std::sscanf(line, "VmRSS: %ld kB", &kb) == 1) break;
-    }
-    if (f) std::fclose(f);
-    return kb / 1024.0;
-  };
+  auto rss_mb = [&] { return ProcStatusKb(server.pid(), "VmRSS") / 1024.0; };
   const double before = rss_mb();
   auto s =
       client.CreateSession(UniformXY(500000, 6), v1::SessionOptions(), "big");
