@@ -11,9 +11,11 @@ namespace {
 // Where the compiler can, the scan is compiled twice and the one for the
 // wider vector units is picked at load time. Both round every operation
 // alike (no contraction into FMA: -ffp-contract=off), so the error bounds
-// of core/predicates.h hold for both.
+// of core/predicates.h hold for both. Not under the sanitizers: the
+// resolver that picks runs before they are set up (ThreadSanitizer's
+// instrumented resolver crashes at load).
 #if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && \
-    !defined(__SANITIZE_ADDRESS__)
+    !defined(__SANITIZE_ADDRESS__) && !defined(__SANITIZE_THREAD__)
 #define KINETRI_VECTOR_CLONES __attribute__((target_clones("avx2", "default")))
 #else
 #define KINETRI_VECTOR_CLONES

@@ -6,8 +6,10 @@ bash scripts/setup.sh
 bash scripts/build.sh
 ctest --test-dir build --output-on-failure -j "$(nproc)"
 # The suite again under AddressSanitizer + UndefinedBehaviorSanitizer
-# (./build-asan, about 10 minutes on 2 cores); KINETRI_SKIP_SANITIZERS=1
-# skips it.
+# (./build-asan, about 10 minutes on 2 cores), then the concurrency tests
+# under ThreadSanitizer (./build-tsan, about 8 minutes);
+# KINETRI_SKIP_SANITIZERS=1 skips both.
 if [[ "${KINETRI_SKIP_SANITIZERS:-0}" != 1 ]]; then
   bash scripts/test_sanitizers.sh
+  bash scripts/test_tsan.sh
 fi

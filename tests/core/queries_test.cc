@@ -304,7 +304,9 @@ TEST(Queries, AdmitGrowsWithTheAnswer) {
     EXPECT_FALSE(overlapped);
     for (size_t i = 0; i < grants.size(); ++i) {
       EXPECT_EQ(grants[i] % step, 0u);
-      if (i > 0) EXPECT_GT(grants[i], grants[i - 1]);
+      if (i > 0) {
+        EXPECT_GT(grants[i], grants[i - 1]);
+      }
     }
     EXPECT_GE(grants.back(), total);
     EXPECT_LT(grants.back(), total + step);
