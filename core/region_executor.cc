@@ -134,12 +134,13 @@ void FixLoop(const MeshView& m, const Vec2* p, Bounds b,
 // Delaunay flips with a LIFO stack of half-edges inside b (each half-edge's
 // own triangle lies in b).
 // `newly_marked` (optional): the triangles this loop marks that were not
-// marked before.
+// marked before; `log` (optional): the flipped half-edges, in order.
 template <bool kBounded, bool kStarChecks = false>
 void LegalizeLoop(const MeshView& m, const Vec2* p, Bounds b,
                   std::vector<uint32_t>& stack, std::vector<uint32_t>& deferred,
                   FlipCounts* counts, uint8_t* mark, Mesh* mesh,
-                  std::vector<uint32_t>* newly_marked = nullptr) {
+                  std::vector<uint32_t>* newly_marked = nullptr,
+                  std::vector<uint32_t>* log = nullptr) {
   while (!stack.empty()) {
     const uint32_t e = stack.back();
     stack.pop_back();
@@ -166,6 +167,7 @@ void LegalizeLoop(const MeshView& m, const Vec2* p, Bounds b,
     }
     m.Flip(e);
     if (mesh) mesh->UpdateVertexEdgesAfterFlip(e);
+    if (log) log->push_back(e);
     ++counts->delaunay;
     if (mark) {
       for (uint32_t t : {TriangleOf(e), TriangleOf(f)}) {
@@ -364,6 +366,10 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
                         }
                       });
     if (Cancelled()) {
+      // Back to the mesh of `from` (regions are independent: any order).
+      for (auto it = regions_.rbegin(); it != regions_.rend(); ++it) {
+        Undo(m, it->log, nullptr);
+      }
       *reason = "cancelled";
       return false;
     }
@@ -411,8 +417,12 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
     }
     const bool stuck = !serial.waiting.empty();
     if (!stuck && HullWindsOnceFrom(mesh, cur_, &hull_hint_)) {
-      for (const Region& g : regions_) stats->flips += g.counts;
+      for (Region& g : regions_) {
+        stats->flips += g.counts;
+        g.fix_log.swap(g.log);
+      }
       stats->flips += serial.counts;
+      fix_serial_log_.swap(serial.log);
       ++stats->flips.fix_rounds;
       return true;
     }
@@ -727,11 +737,10 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
   t0 = std::chrono::steady_clock::now();
 
   if (Cancelled()) return stop(false);
-  stats->mutated = true;
-  // 3. Fix.
+  // 3. Fix. A failed or stopped fix has undone its flips.
   if (!DenseFix(mesh, moved, pol, stats, reason)) {
     stats->fix_seconds += SecondsSince(t0);
-    if (Cancelled()) return stop(true);
+    if (Cancelled()) return stop(false);
     return false;
   }
   stats->fix_seconds += SecondsSince(t0);
@@ -742,23 +751,36 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
   {
     const Vec2* p = cur_.data();
     for_each_region([&](size_t r, uint32_t lo, uint32_t hi) {
-      if (Cancelled()) return;
       Region& g = regions_[r];
-      g.ClearWork();
+      g.ClearWork();  // before the poll: a stop undoes every log
+      if (Cancelled()) return;
       g.stack.assign(g.illegal.rbegin(), g.illegal.rend());
       for (uint32_t t = hi; t-- > lo;) {
         if (!tri_mark_[t]) continue;
         for (uint32_t e = 3 * t + 3; e-- > 3 * t;) g.stack.push_back(e);
       }
       LegalizeLoop<true>(m, p, Bounds{lo, hi}, g.stack, g.deferred, &g.counts,
-                         tri_mark_.data(), nullptr);
+                         tri_mark_.data(), nullptr, nullptr, &g.log);
       // The region's changed triangles, listed while its slots are in cache.
       g.marked.clear();
       for (uint32_t t = lo; t < hi; ++t) {
         if (tri_mark_[t]) g.marked.push_back(t);
       }
     });
-    if (Cancelled()) return stop(true);
+    if (Cancelled()) {
+      // Stopped before any vertex_edge changed: every flip of the step is
+      // in a log, undone in reverse (legalizing, the serial fix, the
+      // regions' fix) back to the mesh of `from`.
+      for (auto it = regions_.rbegin(); it != regions_.rend(); ++it) {
+        Undo(m, it->log, nullptr);
+      }
+      Undo(m, fix_serial_log_, nullptr);
+      for (auto it = regions_.rbegin(); it != regions_.rend(); ++it) {
+        Undo(m, it->fix_log, nullptr);
+      }
+      return stop(false);
+    }
+    stats->mutated = true;  // from here on, not undone
     Region& serial = serial_;
     serial.ClearWork();
     serial.marked.clear();

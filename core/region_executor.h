@@ -89,10 +89,11 @@ struct RegionStepStats {
   double legalize_seconds = 0.0;
   double held_seconds = 0.0;
   // The step stopped because its cancellation token fired. `mutated`: the
-  // mesh may have been changed already (the caller must restore it), set
-  // once fixing begins, whether the step then stops, fails or succeeds; a
-  // step refused before that (the cost model chose a rebuild) leaves the
-  // mesh untouched.
+  // mesh has been changed (the caller must restore it): set once the
+  // vertices held back begin to move, whatever happens then. A step that
+  // stops or fails before (scan, cost model, fixing, legalizing) leaves
+  // the mesh exactly as it was: the flips of fixing and legalizing are
+  // logged and undone.
   bool cancelled = false;
   bool mutated = false;
 };
@@ -141,7 +142,10 @@ class RegionExecutor {
     std::vector<uint32_t> waiting;   // invalid, no repairing flip yet
     std::vector<uint32_t> deferred;  // crosses the region boundary
     std::vector<uint32_t> log;       // flipped edges, in order
-    std::vector<uint32_t> marked;    // changed triangles (legalizing)
+    // The region's flips of the successful fixing attempt, kept while
+    // legalizing so that a stop then can undo the whole step.
+    std::vector<uint32_t> fix_log;
+    std::vector<uint32_t> marked;  // changed triangles (legalizing)
     // (vertex, half-edge leaving it) of the changed triangles.
     std::vector<std::pair<uint32_t, uint32_t>> owners;
     FlipCounts counts;
@@ -178,7 +182,8 @@ class RegionExecutor {
   std::vector<uint8_t> tri_mark_;    // per triangle: changed by a region flip
   std::vector<Region> regions_;
   Region serial_;  // the serial pass over what crossed region boundaries
-  uint32_t hull_hint_ = 0;  // a ghost triangle, remembered
+  std::vector<uint32_t> fix_serial_log_;  // the serial fix's flips (fix_log)
+  uint32_t hull_hint_ = 0;                // a ghost triangle, remembered
 };
 
 }  // namespace kinetri::core
