@@ -201,53 +201,61 @@ v1::StepStats ToProto(const core::StepReport& r) {
   return s;
 }
 
-bool EmitChunks(const core::NeighborLists& lists, uint64_t count,
-                uint64_t global_first, uint64_t total_rows, uint64_t step,
-                bool distances, const std::vector<uint64_t>* client_ids,
-                uint64_t rows_per_chunk, uint64_t results_per_chunk,
-                const std::function<bool(const v1::QueryResponse&)>& emit) {
-  rows_per_chunk = std::max<uint64_t>(rows_per_chunk, 1);
-  results_per_chunk = std::max<uint64_t>(results_per_chunk, 1);
-  const auto& off = lists.offsets;
-  uint64_t row = 0;                         // first row of the chunk
-  uint64_t start = count > 0 ? off[0] : 0;  // its first result
-  do {
-    v1::QueryResponse r;
-    r.set_step(step);
-    r.set_first_row(global_first + row);
-    r.set_total_rows(total_rows);
-    r.add_offsets(0);
-    const uint64_t limit = start + results_per_chunk;
-    uint64_t end = start;  // one past the chunk's last result
-    uint64_t rows = 0;
-    while (row + rows < count && rows < rows_per_chunk &&
-           off[row + rows + 1] <= limit) {
-      end = off[row + rows + 1];
-      r.add_offsets(end - start);
-      if (lists.truncated[row + rows]) r.add_truncated_rows(rows);
-      ++rows;
+ChunkCursor::ChunkCursor(const core::NeighborLists& lists, uint64_t count,
+                         uint64_t global_first, uint64_t total_rows,
+                         uint64_t step, bool distances,
+                         const std::vector<uint64_t>* client_ids,
+                         uint64_t rows_per_chunk, uint64_t results_per_chunk)
+    : lists_(lists),
+      count_(count),
+      global_first_(global_first),
+      total_rows_(total_rows),
+      step_(step),
+      distances_(distances),
+      client_ids_(client_ids),
+      rows_per_chunk_(std::max<uint64_t>(rows_per_chunk, 1)),
+      results_per_chunk_(std::max<uint64_t>(results_per_chunk, 1)),
+      start_(count > 0 ? lists.offsets[0] : 0) {}
+
+bool ChunkCursor::Next(v1::QueryResponse* r) {
+  if (done_) return false;
+  const auto& off = lists_.offsets;
+  r->Clear();
+  r->set_step(step_);
+  r->set_first_row(global_first_ + row_);
+  r->set_total_rows(total_rows_);
+  r->add_offsets(0);
+  const uint64_t limit = start_ + results_per_chunk_;
+  uint64_t end = start_;  // one past the chunk's last result
+  uint64_t rows = 0;
+  while (row_ + rows < count_ && rows < rows_per_chunk_ &&
+         off[row_ + rows + 1] <= limit) {
+    end = off[row_ + rows + 1];
+    r->add_offsets(end - start_);
+    if (lists_.truncated[row_ + rows]) r->add_truncated_rows(rows);
+    ++rows;
+  }
+  if (rows == 0 && row_ < count_) {
+    // The row does not fit: as much of it as does, continued next.
+    end = limit;
+    r->add_offsets(end - start_);
+    r->set_last_row_continues(true);
+  }
+  if (client_ids_ != nullptr) {
+    for (uint64_t k = start_; k < end; ++k) {
+      r->add_client_ids((*client_ids_)[lists_.ids[k]]);
     }
-    if (rows == 0 && row < count) {
-      // The row does not fit: as much of it as does, continued next.
-      end = limit;
-      r.add_offsets(end - start);
-      r.set_last_row_continues(true);
-    }
-    if (client_ids != nullptr) {
-      for (uint64_t k = start; k < end; ++k) {
-        r.add_client_ids((*client_ids)[lists.ids[k]]);
-      }
-    } else {
-      r.mutable_ids()->Add(lists.ids.begin() + start, lists.ids.begin() + end);
-    }
-    if (distances) {
-      r.mutable_distances()->Add(lists.distances.begin() + start,
-                                 lists.distances.begin() + end);
-    }
-    if (!emit(r)) return false;
-    row += rows;
-    start = end;
-  } while (row < count);
+  } else {
+    r->mutable_ids()->Add(lists_.ids.begin() + start_,
+                          lists_.ids.begin() + end);
+  }
+  if (distances_) {
+    r->mutable_distances()->Add(lists_.distances.begin() + start_,
+                                lists_.distances.begin() + end);
+  }
+  row_ += rows;
+  start_ = end;
+  done_ = row_ >= count_;
   return true;
 }
 

@@ -73,13 +73,28 @@ v1::StepStats ToProto(const core::StepReport& report);
 // total_rows rows) into response chunks of at most `rows_per_chunk` rows
 // and `results_per_chunk` results: whole rows while they fit, a row with
 // more results split across chunks (last_row_continues). Each chunk is
-// built only when `emit` takes it (the answer is never held twice); emit
-// returns false to stop. With client_ids, result ids are the client's ids.
-bool EmitChunks(const core::NeighborLists& lists, uint64_t count,
-                uint64_t global_first, uint64_t total_rows, uint64_t step,
-                bool distances, const std::vector<uint64_t>* client_ids,
-                uint64_t rows_per_chunk, uint64_t results_per_chunk,
-                const std::function<bool(const v1::QueryResponse&)>& emit);
+// built only when Next() is called (the answer is never held twice). With
+// client_ids, result ids are the client's ids.
+class ChunkCursor {
+ public:
+  ChunkCursor(const core::NeighborLists& lists, uint64_t count,
+              uint64_t global_first, uint64_t total_rows, uint64_t step,
+              bool distances, const std::vector<uint64_t>* client_ids,
+              uint64_t rows_per_chunk, uint64_t results_per_chunk);
+  // Fills *r with the next chunk (there is always a first one, possibly
+  // with no rows); false once every chunk has been built.
+  bool Next(v1::QueryResponse* r);
+
+ private:
+  const core::NeighborLists& lists_;
+  const uint64_t count_, global_first_, total_rows_, step_;
+  const bool distances_;
+  const std::vector<uint64_t>* client_ids_;
+  const uint64_t rows_per_chunk_, results_per_chunk_;
+  uint64_t row_ = 0;    // first row of the next chunk
+  uint64_t start_ = 0;  // its first result
+  bool done_ = false;
+};
 
 // Query targets of a PointIds message: client ids resolved through `ids`
 // (POINT_ID_POLICY_CLIENT sessions), else sequential ids.

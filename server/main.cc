@@ -51,6 +51,10 @@ ABSL_FLAG(int, query_threads, 0,
 ABSL_FLAG(int, query_nice, 10,
           "how much the query threads' nice value is raised (0-19): a step "
           "takes a core from queries as soon as it wakes");
+ABSL_FLAG(bool, query_sched_idle, true,
+          "run the query threads under SCHED_IDLE (Linux): a waking step "
+          "preempts them at once, queries use the CPU steps leave; false: "
+          "--query_nice alone");
 ABSL_FLAG(std::string, tls_cert, "",
           "PEM certificate chain of the gRPC port (TLS on when set, with "
           "--tls_key); re-read when the files change");
@@ -261,7 +265,7 @@ int main(int argc, char** argv) {
       query_threads > 0
           ? query_threads
           : static_cast<int>(std::max(1u, std::thread::hardware_concurrency())),
-      query_nice);
+      query_nice, absl::GetFlag(FLAGS_query_sched_idle));
   kinetri::server::KinetriServiceImpl service(&registry, &metrics, &watchdog,
                                               &budget, auth.get());
   service.SetQueryPool(&query_pool);

@@ -6,6 +6,8 @@
 #include "absl/time/time.h"
 
 #ifdef __linux__
+#include <pthread.h>
+#include <sched.h>
 #include <sys/resource.h>
 #include <sys/syscall.h>
 #include <unistd.h>
@@ -35,14 +37,26 @@ int RaiseOwnNice(int delta) {
 #endif
 }
 
+// Puts the calling thread under SCHED_IDLE (a waking thread of the normal
+// policy preempts it at once); true when it is.
+bool EnterIdlePolicy() {
+#ifdef __linux__
+  sched_param param{};
+  param.sched_priority = 0;
+  return pthread_setschedparam(pthread_self(), SCHED_IDLE, &param) == 0;
+#else
+  return false;
+#endif
+}
+
 }  // namespace
 
-QueryPool::QueryPool(int threads, int nice) {
+QueryPool::QueryPool(int threads, int nice, bool idle) {
   threads = std::clamp(threads, 1, 1024);
   nice = std::clamp(nice, 0, 19);
   threads_.reserve(threads);
   for (int i = 0; i < threads; ++i) {
-    threads_.emplace_back([this, nice] { Loop(nice); });
+    threads_.emplace_back([this, nice, idle] { Loop(nice, idle); });
   }
 }
 
@@ -59,15 +73,22 @@ int QueryPool::applied_nice() const {
   return applied_nice_;
 }
 
+bool QueryPool::applied_idle() const {
+  absl::MutexLock lock(&mu_);
+  return applied_idle_;
+}
+
 int QueryPool::queued() const {
   absl::MutexLock lock(&mu_);
   return static_cast<int>(queue_.size());
 }
 
-void QueryPool::Loop(int nice) {
+void QueryPool::Loop(int nice, bool idle) {
   const int applied = RaiseOwnNice(nice);
+  const bool idle_policy = idle && EnterIdlePolicy();
   absl::MutexLock lock(&mu_);
   applied_nice_ = applied;
+  applied_idle_ = idle_policy;
   while (true) {
     mu_.Await(absl::Condition(
         +[](QueryPool* p) ABSL_EXCLUSIVE_LOCKS_REQUIRED(p->mu_) {

@@ -326,13 +326,23 @@ KinetriServiceImpl::KinetriServiceImpl(SessionRegistry* registry,
              grpc::ServerReaderWriter<v1::StepResponse, grpc::ByteBuffer>*
                  stream) { return self->StreamStepsFromBytes(ctx, stream); },
           this));
+  // The query RPCs send bytes too: their chunks are encoded on the query
+  // threads (below the priority of steps), not on the handler's thread.
   MarkMethodStreamed(
       MethodIndex("StreamQuery"),
       new grpc::internal::BidiStreamingHandler<Self, grpc::ByteBuffer,
-                                               v1::QueryResponse>(
-          [](Self* self, grpc::ServerContext* ctx,
-             grpc::ServerReaderWriter<v1::QueryResponse, grpc::ByteBuffer>*
-                 stream) { return self->StreamQueryFromBytes(ctx, stream); },
+                                               grpc::ByteBuffer>(
+          [](Self* self, grpc::ServerContext* ctx, BytesStream* stream) {
+            return self->StreamQueryFromBytes(ctx, stream);
+          },
+          this));
+  MarkMethodStreamed(
+      MethodIndex("Query"),
+      new grpc::internal::BidiStreamingHandler<Self, grpc::ByteBuffer,
+                                               grpc::ByteBuffer>(
+          [](Self* self, grpc::ServerContext* ctx, BytesStream* stream) {
+            return self->QueryFromBytes(ctx, stream);
+          },
           this));
 }
 
@@ -738,18 +748,24 @@ grpc::Status KinetriServiceImpl::StreamStepsFromBytes(
   return rpc.Done(grpc::Status::OK);
 }
 
-grpc::Status KinetriServiceImpl::Query(
-    grpc::ServerContext* ctx, const v1::QueryRequest* req,
-    grpc::ServerWriter<v1::QueryResponse>* writer) {
+grpc::Status KinetriServiceImpl::QueryFromBytes(grpc::ServerContext* ctx,
+                                                BytesStream* stream) {
   RpcScope rpc(metrics_, "Query", "server_stream");
-  return rpc.Done(RunQuery(ctx, *req, [writer](const v1::QueryResponse& r) {
-    return writer->Write(r);
+  MessageReader<v1::QueryRequest, BytesStream> messages(stream);
+  v1::QueryRequest req;
+  absl::StatusOr<bool> got = messages.Read(&req);
+  if (!got.ok()) return rpc.Done(ToGrpc(got.status()));
+  if (!*got) {
+    return rpc.Done(grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                                 "Query: no query was sent"));
+  }
+  return rpc.Done(RunQuery(ctx, req, [stream](const grpc::ByteBuffer& b) {
+    return stream->Write(b);
   }));
 }
 
-grpc::Status KinetriServiceImpl::StreamQueryFromBytes(
-    grpc::ServerContext* ctx,
-    grpc::ServerReaderWriter<v1::QueryResponse, grpc::ByteBuffer>* stream) {
+grpc::Status KinetriServiceImpl::StreamQueryFromBytes(grpc::ServerContext* ctx,
+                                                      BytesStream* stream) {
   RpcScope rpc(metrics_, "StreamQuery", "bidi_stream");
   auto tenant = Caller(*ctx);
   if (!tenant.ok()) return rpc.Done(ToGrpc(tenant.status()));
@@ -758,9 +774,7 @@ grpc::Status KinetriServiceImpl::StreamQueryFromBytes(
   // --max_points and reserved from the memory budget as they arrive.
   v1::QueryRequest req, more;
   IdleWatchdog::Registration idle(watchdog_, ctx);
-  MessageReader<v1::QueryRequest,
-                grpc::ServerReaderWriter<v1::QueryResponse, grpc::ByteBuffer>>
-      messages(stream);
+  MessageReader<v1::QueryRequest, BytesStream> messages(stream);
   absl::StatusOr<bool> got = messages.Read(&req);
   if (!got.ok()) return rpc.Done(ToGrpc(got.status()));
   if (!*got) {
@@ -839,14 +853,14 @@ grpc::Status KinetriServiceImpl::StreamQueryFromBytes(
                      "the client sent nothing for longer than the server's "
                      "--stream_idle_timeout_seconds"));
   }
-  return rpc.Done(RunQuery(ctx, req, [stream](const v1::QueryResponse& r) {
-    return stream->Write(r);
+  return rpc.Done(RunQuery(ctx, req, [stream](const grpc::ByteBuffer& b) {
+    return stream->Write(b);
   }));
 }
 
 grpc::Status KinetriServiceImpl::RunQuery(
     grpc::ServerContext* ctx, const v1::QueryRequest& request,
-    const std::function<bool(const v1::QueryResponse&)>& write) {
+    const std::function<bool(const grpc::ByteBuffer&)>& write) {
   const v1::QueryRequest* req = &request;
   auto tenant = Caller(*ctx);
   if (!tenant.ok()) return (ToGrpc(tenant.status()));
@@ -1031,21 +1045,43 @@ grpc::Status KinetriServiceImpl::RunQuery(
       return (ToGrpc(result.status()));
     }
     produced += result->ids.size();
-    bool cancelled = false;
-    const bool sent =
-        EmitChunks(*result, count, first, total_rows, snap.step,
-                   req->include_distances(), cids, rows_per_chunk,
-                   results_per_chunk, [&](const v1::QueryResponse& chunk) {
-                     if (ctx->IsCancelled()) {
-                       cancelled = true;
-                       return false;
-                     }
-                     return write(chunk);
-                   });
-    if (!sent) {
-      return (
-          grpc::Status(grpc::StatusCode::CANCELLED,
-                       cancelled ? "cancelled" : "the client stopped reading"));
+    // Each chunk is built and encoded on the query threads as well, one at
+    // a time as it is sent; this thread only hands the bytes to gRPC.
+    ChunkCursor chunks(*result, count, first, total_rows, snap.step,
+                       req->include_distances(), cids, rows_per_chunk,
+                       results_per_chunk);
+    while (true) {
+      if (ctx->IsCancelled()) {
+        return grpc::Status(grpc::StatusCode::CANCELLED, "cancelled");
+      }
+      grpc::ByteBuffer bytes;
+      bool more = false;
+      bool encoded = true;
+      auto encode = [&] {
+        v1::QueryResponse chunk;
+        more = chunks.Next(&chunk);
+        bool own = false;
+        if (more) {
+          encoded = grpc::SerializationTraits<v1::QueryResponse>::Serialize(
+                        chunk, &bytes, &own)
+                        .ok();
+        }
+      };
+      if (query_pool_ != nullptr) {
+        absl::Status waited = query_pool_->Run(cancel, "query", encode);
+        if (!waited.ok()) return (ToGrpc(waited));
+      } else {
+        encode();
+      }
+      if (!more) break;
+      if (!encoded) {
+        return grpc::Status(grpc::StatusCode::INTERNAL,
+                            "a response chunk could not be encoded");
+      }
+      if (!write(bytes)) {
+        return grpc::Status(grpc::StatusCode::CANCELLED,
+                            "the client stopped reading");
+      }
     }
     if (total_rows == 0) break;
   }

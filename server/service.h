@@ -79,11 +79,13 @@ class KinetriServiceImpl final : public v1::KinetriService::Service {
   grpc::Status StreamStepsFromBytes(
       grpc::ServerContext* ctx,
       grpc::ServerReaderWriter<v1::StepResponse, grpc::ByteBuffer>* stream);
-  grpc::Status Query(grpc::ServerContext* ctx, const v1::QueryRequest* request,
-                     grpc::ServerWriter<v1::QueryResponse>* writer) override;
-  grpc::Status StreamQueryFromBytes(
-      grpc::ServerContext* ctx,
-      grpc::ServerReaderWriter<v1::QueryResponse, grpc::ByteBuffer>* stream);
+  // Query and StreamQuery read and write bytes: their answers' chunks are
+  // encoded on the query pool's threads.
+  using BytesStream =
+      grpc::ServerReaderWriter<grpc::ByteBuffer, grpc::ByteBuffer>;
+  grpc::Status QueryFromBytes(grpc::ServerContext* ctx, BytesStream* stream);
+  grpc::Status StreamQueryFromBytes(grpc::ServerContext* ctx,
+                                    BytesStream* stream);
   grpc::Status ExportTriangulation(
       grpc::ServerContext* ctx, const v1::ExportTriangulationRequest* request,
       grpc::ServerWriter<v1::ExportTriangulationResponse>* writer) override;
@@ -95,7 +97,7 @@ class KinetriServiceImpl final : public v1::KinetriService::Service {
   // the client went away).
   grpc::Status RunQuery(
       grpc::ServerContext* ctx, const v1::QueryRequest& request,
-      const std::function<bool(const v1::QueryResponse&)>& write);
+      const std::function<bool(const grpc::ByteBuffer&)>& write);
   // registry_->Get, or DATA_LOSS for a session whose files are corrupt.
   absl::StatusOr<std::shared_ptr<Session>> Lookup(
       const std::string& name, const std::string& tenant) const;

@@ -4,11 +4,19 @@
 #include <grpcpp/generic/generic_stub.h>
 #include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
+#include <sched.h>
+#include <signal.h>
+#include <sys/resource.h>
+#include <sys/wait.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <cstdio>
+#include <cstdlib>
+#include <mutex>
+#include <string>
 #include <thread>
 #include <vector>
 
@@ -182,6 +190,101 @@ TEST(HardeningLimits, ResultLimitStopsTheWork) {
 // Defect 4: a 1-point step waited 14-26 s behind a stream of k-NN queries
 // (the reader-preferring lock let readers in ahead of it forever); then,
 // with snapshots, still 6.7 ms at p50 behind the queries' CPU.
+// k = 8 for every point of the session.
+v1::QueryRequest AllPointsKnn8(const std::string& session) {
+  v1::QueryRequest q;
+  q.set_session(session);
+  q.set_kind(v1::QUERY_KIND_K_NEAREST);
+  q.set_k(8);
+  q.mutable_all_points();
+  return q;
+}
+
+// Query load from another process: this test binary again, running its
+// disabled helper test below under SCHED_IDLE with `threads` loops of
+// all-points k = 8 queries. It stands in for remote clients: in one process
+// with the measured step, the eight clients' decoding of 400K-result
+// answers ran at the step's priority on the same two cores, and the step's
+// completions waited for gRPC client pollers on those threads.
+class QueryLoadProcess {
+ public:
+  QueryLoadProcess(const std::string& target, const std::string& session,
+                   int threads)
+      : count_file_(::testing::TempDir() + "query_load_" +
+                    std::to_string(getpid())) {
+    std::remove(count_file_.c_str());
+    std::vector<std::string> env = {
+        "KINETRI_LOAD_TARGET=" + target, "KINETRI_LOAD_SESSION=" + session,
+        "KINETRI_LOAD_THREADS=" + std::to_string(threads),
+        "KINETRI_LOAD_COUNT_FILE=" + count_file_};
+    for (char** e = environ; *e != nullptr; ++e) env.emplace_back(*e);
+    std::vector<std::string> args = {
+        "/proc/self/exe", "--gtest_also_run_disabled_tests",
+        "--gtest_filter=HardeningHelper.DISABLED_QueryLoad"};
+    std::vector<char*> argv, envp;
+    for (auto& a : args) argv.push_back(a.data());
+    argv.push_back(nullptr);
+    for (auto& e : env) envp.push_back(e.data());
+    envp.push_back(nullptr);
+    pid_ = fork();
+    if (pid_ == 0) {
+      setpriority(PRIO_PROCESS, 0, 19);
+      sched_param sp{};
+      sched_setscheduler(0, SCHED_IDLE, &sp);
+      execve(argv[0], argv.data(), envp.data());
+      _exit(127);
+    }
+  }
+  ~QueryLoadProcess() {
+    if (pid_ > 0) {
+      kill(pid_, SIGKILL);
+      waitpid(pid_, nullptr, 0);
+    }
+    std::remove(count_file_.c_str());
+  }
+  // Queries answered so far.
+  int queries() const {
+    int n = 0;
+    if (FILE* f = std::fopen(count_file_.c_str(), "r")) {
+      if (std::fscanf(f, "%d", &n) != 1) n = 0;
+      std::fclose(f);
+    }
+    return n;
+  }
+
+ private:
+  std::string count_file_;
+  pid_t pid_ = -1;
+};
+
+// The child of QueryLoadProcess (skipped unless started by it).
+TEST(HardeningHelper, DISABLED_QueryLoad) {
+  const char* target = std::getenv("KINETRI_LOAD_TARGET");
+  if (target == nullptr) GTEST_SKIP() << "started by QueryLoadProcess";
+  const v1::QueryRequest q = AllPointsKnn8(std::getenv("KINETRI_LOAD_SESSION"));
+  const std::string count_file = std::getenv("KINETRI_LOAD_COUNT_FILE");
+  std::atomic<int> answered{0};
+  std::mutex mu;
+  std::vector<std::thread> loops;
+  for (int r = 0; r < std::atoi(std::getenv("KINETRI_LOAD_THREADS")); ++r) {
+    loops.emplace_back([&] {
+      Client c(target);
+      while (true) {  // until killed
+        if (!c.Query(q).ok()) continue;
+        const int n = ++answered;
+        std::lock_guard<std::mutex> lock(mu);
+        const std::string tmp = count_file + ".tmp";
+        if (FILE* f = std::fopen(tmp.c_str(), "w")) {
+          std::fprintf(f, "%d\n", n);
+          std::fclose(f);
+          std::rename(tmp.c_str(), count_file.c_str());
+        }
+      }
+    });
+  }
+  for (auto& t : loops) t.join();
+}
+
 TEST_F(HardeningTest, StepsAreNotStarvedByQueries) {
   const size_t n = 50000;
   auto s = client_->CreateSession(UniformXY(n, 3), v1::SessionOptions(), "st");
@@ -199,26 +302,15 @@ TEST_F(HardeningTest, StepsAreNotStarvedByQueries) {
     ASSERT_TRUE((*steps)->MoveBy({7}, {1e-4, 0}).ok());
     idle_ms.push_back(MsSince(t0));
   }
-  v1::QueryRequest knn8;  // k = 8 for every point
-  knn8.set_session(s->name());
-  knn8.set_kind(v1::QUERY_KIND_K_NEAREST);
-  knn8.set_k(8);
-  knn8.mutable_all_points();
   const auto alone_t0 = Clock::now();
-  ASSERT_TRUE(client_->Query(knn8).ok());
+  ASSERT_TRUE(client_->Query(AllPointsKnn8(s->name())).ok());
   const double alone_ms = MsSince(alone_t0);
-  std::atomic<bool> stop{false};
-  std::atomic<int> queries{0};
-  std::vector<std::thread> readers;
-  for (int r = 0; r < 8; ++r) {
-    readers.emplace_back([&] {
-      Client c(server_->target());
-      while (!stop) {
-        if (c.Query(knn8).ok()) ++queries;
-      }
-    });
+  QueryLoadProcess load(server_->target(), s->name(), 8);
+  for (int i = 0; i < 200 && load.queries() == 0; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(25));
   }
-  std::this_thread::sleep_for(std::chrono::milliseconds(300));
+  ASSERT_GT(load.queries(), 0) << "the query load did not start";
+  const int before = load.queries();
   // At least 200 steps and a second of queries (several dozen of them).
   std::vector<double> busy_ms;
   const auto busy_t0 = Clock::now();
@@ -227,9 +319,7 @@ TEST_F(HardeningTest, StepsAreNotStarvedByQueries) {
     ASSERT_TRUE((*steps)->MoveBy({7}, {1e-4, 0}).ok());
     busy_ms.push_back(MsSince(t0));
   }
-  const int during = queries.load();
-  stop = true;
-  for (auto& t : readers) t.join();
+  const int during = load.queries() - before;
   const double idle_p50 = percentile(idle_ms, 0.5);
   const double idle_p99 = percentile(idle_ms, 0.99);
   const double busy_p50 = percentile(busy_ms, 0.5);
@@ -243,16 +333,14 @@ TEST_F(HardeningTest, StepsAreNotStarvedByQueries) {
   EXPECT_GT(during, 0);
   // Queries read a snapshot: a step never waits for one on a lock (it
   // copies the triangulation while readers hold it). Their rows are
-  // computed on the server's query threads, at most one per core and at a
-  // raised nice value (server/query_pool.h), so the step's threads take a
-  // core as soon as they wake: half the steps cost about what they cost
-  // idle (3x and 1 ms of slack; without the pool: 6.7 ms against 0.4 ms
-  // idle in CI). The slowest 1 % wait less than one query: what remains is
-  // gRPC's own threads, the handlers encoding rows and the eight test
-  // clients decoding them, all at the step's priority on two cores
-  // (docs/RELIABILITY.md).
-  EXPECT_LT(busy_p50, 3 * idle_p50 + 1);
-  EXPECT_LT(busy_p99, alone_ms + 5);
+  // computed, and their answers encoded, on the server's query threads
+  // under SCHED_IDLE (server/query_pool.h), so a step's threads take a core
+  // as soon as they wake; the load's clients run in another process at the
+  // lowest priority, like remote clients. The slowest 1 % of steps under 8
+  // query loops stay within 3x the slowest 1 % idle (and 1 ms of scheduler
+  // noise on this 2-core machine; before: 4.8-6.2 ms against 0.9 ms).
+  EXPECT_LT(busy_p50, 3 * idle_p50 + 0.5);
+  EXPECT_LT(busy_p99, 3 * idle_p99 + 1.0);
 }
 
 // A query answers from the step it started on, every chunk of it, even when

@@ -10,6 +10,7 @@
 #include <vector>
 
 #ifdef __linux__
+#include <sched.h>
 #include <sys/resource.h>
 #include <sys/syscall.h>
 #include <unistd.h>
@@ -45,6 +46,37 @@ TEST(QueryPool, RunsOnItsOwnLowerPriorityThreads) {
   EXPECT_EQ(pool.applied_nice(), nice_seen);
 #endif
   EXPECT_EQ(OwnNice(), caller_nice);  // the caller's priority is untouched
+}
+
+// With `idle`, the pool's threads run under SCHED_IDLE (a waking step
+// preempts them at once); the caller's policy is untouched.
+TEST(QueryPool, IdlePolicyForItsThreadsOnly) {
+  QueryPool pool(1, 0, /*idle=*/true);
+  int policy_seen = -1;
+  const absl::Status st = pool.Run(core::CancelToken::Never(), "q", [&] {
+#ifdef __linux__
+    policy_seen = sched_getscheduler(0);
+#endif
+  });
+  ASSERT_TRUE(st.ok()) << st;
+#ifdef __linux__
+  EXPECT_EQ(policy_seen, SCHED_IDLE);
+  EXPECT_TRUE(pool.applied_idle());
+  EXPECT_EQ(sched_getscheduler(0), SCHED_OTHER);
+#endif
+  QueryPool plain(1, 0);
+  EXPECT_TRUE(plain
+                  .Run(core::CancelToken::Never(), "q",
+                       [&] {
+#ifdef __linux__
+                         policy_seen = sched_getscheduler(0);
+#endif
+                       })
+                  .ok());
+#ifdef __linux__
+  EXPECT_EQ(policy_seen, SCHED_OTHER);
+  EXPECT_FALSE(plain.applied_idle());
+#endif
 }
 
 TEST(QueryPool, AtMostThreadsBlocksAtOnceAndEveryBlockRuns) {
