@@ -656,17 +656,20 @@ TEST(HardeningMemory, ExportIsAdmittedAgainstTheBudget) {
 }
 
 // With no room in the budget for a snapshot copy, a step waits for the
-// readers of the current step instead, and still applies. (The session
-// holds 35 MB, the query's one block ~36 MB while it is answered, a copy
-// would need 16 MB more.)
+// readers of the current step instead, and still applies. The reader is
+// slow: it takes the first chunk of a one-block answer (the whole block is
+// computed and reserved by then: session 35 MB + rows 10 MB + 3.1M results
+// with distances 75 MB of 130), then stops reading for 400 ms; a copy would
+// need 16 MB more.
 TEST(HardeningMemory, StepWithoutRoomForACopyWaitsForReaders) {
   testing::ServerProcess server(KINETRI_SERVER_BINARY,
-                                {"--threads=2", "--max_memory_mb=80"});
+                                {"--threads=2", "--max_memory_mb=130"});
   ASSERT_TRUE(server.ok());
   Client client(server.target());
   const size_t n = 100000;
   auto s = client.CreateSession(UniformXY(n, 21), v1::SessionOptions(), "w");
   ASSERT_TRUE(s.ok()) << s.status();
+  std::atomic<bool> first_chunk{false}, reader_failed{false};
   Clock::time_point query_done;
   std::thread reader([&] {
     Client c(server.target());
@@ -674,13 +677,30 @@ TEST(HardeningMemory, StepWithoutRoomForACopyWaitsForReaders) {
     q.set_session(s->name());
     q.set_kind(v1::QUERY_KIND_RADIUS);
     q.set_radius(0.01);
+    q.set_include_distances(true);
     q.mutable_all_points();
     q.set_rows_per_chunk(n);  // one block: the reservation is held throughout
-    auto answer = c.Query(q);
-    EXPECT_TRUE(answer.ok()) << answer.status();
+    grpc::ClientContext ctx;
+    auto stream = c.stub()->Query(&ctx, q);
+    v1::QueryResponse chunk;
+    if (!stream->Read(&chunk)) {
+      reader_failed = true;
+      first_chunk = true;
+      return;
+    }
+    first_chunk = true;
+    std::this_thread::sleep_for(std::chrono::milliseconds(400));
+    uint64_t chunks = 1;
+    while (stream->Read(&chunk)) ++chunks;
+    const grpc::Status st = stream->Finish();
+    EXPECT_TRUE(st.ok()) << st.error_message();
+    EXPECT_GT(chunks, 10u);  // ~37 MB of answer: more than gRPC buffers
     query_done = Clock::now();
   });
-  std::this_thread::sleep_for(std::chrono::milliseconds(150));
+  for (int i = 0; i < 2000 && !first_chunk; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  }
+  ASSERT_TRUE(first_chunk && !reader_failed);
   auto steps = client.OpenSteps(s->name());
   ASSERT_TRUE(steps.ok());
   auto ack = (*steps)->MoveBy(std::vector<double>(2 * n, 1e-5));
