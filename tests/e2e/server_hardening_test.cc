@@ -544,24 +544,49 @@ TEST(HardeningStreams, StepBufferIsBoundedAndIdleStreamsEnd) {
   EXPECT_EQ(client.GetSession(s->name())->step(), 0u);
 }
 
+// The memory tests: a server with --max_memory_mb=`memory_mb` (0: its
+// default) and a client; most also hold one 100K-point session (35 MB of
+// the budget).
+class HardeningMemory : public ::testing::Test {
+ protected:
+  static constexpr size_t kPoints = 100000;
+  void Start(int memory_mb) {
+    std::vector<std::string> flags = {"--threads=2"};
+    if (memory_mb > 0) {
+      flags.push_back("--max_memory_mb=" + std::to_string(memory_mb));
+    }
+    server_ =
+        std::make_unique<testing::ServerProcess>(KINETRI_SERVER_BINARY, flags);
+    ASSERT_TRUE(server_->ok());
+    client_ = std::make_unique<Client>(server_->target());
+  }
+  void StartWithSession(int memory_mb, uint64_t seed) {
+    ASSERT_NO_FATAL_FAILURE(Start(memory_mb));
+    auto s = client_->CreateSession(UniformXY(kPoints, seed),
+                                    v1::SessionOptions(), "m");
+    ASSERT_TRUE(s.ok()) << s.status();
+    session_ = s->name();
+  }
+  std::unique_ptr<testing::ServerProcess> server_;
+  std::unique_ptr<Client> client_;
+  std::string session_;
+};
+
 // Defect 6: 8 half-open creations announcing 50M points reserved GBs up
 // front and a 20M-point creation ran the server out of memory. Creations are
 // admitted against the memory budget before anything is allocated.
-TEST(HardeningMemory, CreationsAreAdmittedAgainstTheBudget) {
-  testing::ServerProcess server(KINETRI_SERVER_BINARY,
-                                {"--threads=2", "--max_memory_mb=100"});
-  ASSERT_TRUE(server.ok());
-  Client client(server.target());
+TEST_F(HardeningMemory, CreationsAreAdmittedAgainstTheBudget) {
+  ASSERT_NO_FATAL_FAILURE(Start(100));
   auto big =
-      client.CreateSession(UniformXY(400000, 9), v1::SessionOptions(), "big");
+      client_->CreateSession(UniformXY(400000, 9), v1::SessionOptions(), "big");
   EXPECT_EQ(big.status().code(), absl::StatusCode::kResourceExhausted);
   EXPECT_NE(big.status().message().find("memory budget"), std::string::npos)
       << big.status();
   std::vector<std::string> names;
   for (int i = 0; i < 3; ++i) {
     auto s =
-        client.CreateSession(UniformXY(100000, 10 + i), v1::SessionOptions(),
-                             "s" + std::to_string(i));
+        client_->CreateSession(UniformXY(100000, 10 + i), v1::SessionOptions(),
+                               "s" + std::to_string(i));
     if (i < 2) {
       ASSERT_TRUE(s.ok()) << i << ": " << s.status();
       names.push_back(s->name());
@@ -569,9 +594,9 @@ TEST(HardeningMemory, CreationsAreAdmittedAgainstTheBudget) {
       EXPECT_EQ(s.status().code(), absl::StatusCode::kResourceExhausted);
     }
   }
-  ASSERT_TRUE(client.DeleteSession(names[0]).ok());
+  ASSERT_TRUE(client_->DeleteSession(names[0]).ok());
   auto again =
-      client.CreateSession(UniformXY(100000, 20), v1::SessionOptions(), "s3");
+      client_->CreateSession(UniformXY(100000, 20), v1::SessionOptions(), "s3");
   EXPECT_TRUE(again.ok()) << again.status();
 }
 
@@ -594,27 +619,22 @@ long ProcStatusKb(int pid, const char* field) {
 // budget before they are kept, so an answer that does not fit is refused
 // while it is built (the server's peak stays near the budget), and its
 // reservation is returned.
-TEST(HardeningMemory, QueryAnswersAreAdmittedAgainstTheBudget) {
-  testing::ServerProcess server(KINETRI_SERVER_BINARY,
-                                {"--threads=2", "--max_memory_mb=100"});
-  ASSERT_TRUE(server.ok());
-  Client client(server.target());
-  const size_t n = 100000;
-  auto s = client.CreateSession(UniformXY(n, 31), v1::SessionOptions(), "q");
-  ASSERT_TRUE(s.ok()) << s.status();
-  const long peak_before = ProcStatusKb(server.pid(), "VmHWM");
+TEST_F(HardeningMemory, QueryAnswersAreAdmittedAgainstTheBudget) {
+  ASSERT_NO_FATAL_FAILURE(StartWithSession(100, 31));
+  const size_t n = kPoints;
+  const long peak_before = ProcStatusKb(server_->pid(), "VmHWM");
   // ~785 results per row, 24 bytes each with distances: the first block
   // alone (65536 rows) would hold 1.2 GB; the result limit allows 200M.
   v1::QueryRequest big;
-  big.set_session(s->name());
+  big.set_session(session_);
   big.set_kind(v1::QUERY_KIND_RADIUS);
   big.set_radius(0.05);
   big.set_include_distances(true);
   big.mutable_all_points();
   const auto t0 = Clock::now();
-  auto refused = client.Query(big);
+  auto refused = client_->Query(big);
   const double refused_ms = MsSince(t0);
-  const long peak_after = ProcStatusKb(server.pid(), "VmHWM");
+  const long peak_after = ProcStatusKb(server_->pid(), "VmHWM");
   std::printf("refused after %.0f ms; server peak %ld -> %ld MB: %s\n",
               refused_ms, peak_before / 1024, peak_after / 1024,
               refused.status().ToString().c_str());
@@ -625,30 +645,24 @@ TEST(HardeningMemory, QueryAnswersAreAdmittedAgainstTheBudget) {
   // What fits is answered, and the refused query's reservation is back:
   // another 100K-point session (35 MB) fits beside the first.
   v1::QueryRequest knn;
-  knn.set_session(s->name());
+  knn.set_session(session_);
   knn.set_kind(v1::QUERY_KIND_K_NEAREST);
   knn.set_k(4);
   knn.mutable_all_points();
-  auto answer = client.Query(knn);
+  auto answer = client_->Query(knn);
   ASSERT_TRUE(answer.ok()) << answer.status();
   EXPECT_EQ(answer->offsets.size(), n + 1);
   auto second =
-      client.CreateSession(UniformXY(n, 32), v1::SessionOptions(), "q2");
+      client_->CreateSession(UniformXY(n, 32), v1::SessionOptions(), "q2");
   EXPECT_TRUE(second.ok()) << second.status();
 }
 
 // Export copies a step's positions and triangles (40 bytes per point):
 // reserved first, refused when they do not fit.
-TEST(HardeningMemory, ExportIsAdmittedAgainstTheBudget) {
-  testing::ServerProcess server(KINETRI_SERVER_BINARY,
-                                {"--threads=2", "--max_memory_mb=37"});
-  ASSERT_TRUE(server.ok());
-  Client client(server.target());
+TEST_F(HardeningMemory, ExportIsAdmittedAgainstTheBudget) {
   // 35 MB of 37 reserved by the session; the export needs 4.
-  auto s =
-      client.CreateSession(UniformXY(100000, 33), v1::SessionOptions(), "e");
-  ASSERT_TRUE(s.ok()) << s.status();
-  auto mesh = client.Export(s->name());
+  ASSERT_NO_FATAL_FAILURE(StartWithSession(37, 33));
+  auto mesh = client_->Export(session_);
   EXPECT_EQ(mesh.status().code(), absl::StatusCode::kResourceExhausted);
   EXPECT_NE(mesh.status().message().find("ExportTriangulation"),
             std::string::npos)
@@ -661,20 +675,15 @@ TEST(HardeningMemory, ExportIsAdmittedAgainstTheBudget) {
 // computed and reserved by then: session 35 MB + rows 10 MB + 3.1M results
 // with distances 75 MB of 130), then stops reading for 400 ms; a copy would
 // need 16 MB more.
-TEST(HardeningMemory, StepWithoutRoomForACopyWaitsForReaders) {
-  testing::ServerProcess server(KINETRI_SERVER_BINARY,
-                                {"--threads=2", "--max_memory_mb=130"});
-  ASSERT_TRUE(server.ok());
-  Client client(server.target());
-  const size_t n = 100000;
-  auto s = client.CreateSession(UniformXY(n, 21), v1::SessionOptions(), "w");
-  ASSERT_TRUE(s.ok()) << s.status();
+TEST_F(HardeningMemory, StepWithoutRoomForACopyWaitsForReaders) {
+  ASSERT_NO_FATAL_FAILURE(StartWithSession(130, 21));
+  const size_t n = kPoints;
   std::atomic<bool> first_chunk{false}, reader_failed{false};
   Clock::time_point query_done;
   std::thread reader([&] {
-    Client c(server.target());
+    Client c(server_->target());
     v1::QueryRequest q;
-    q.set_session(s->name());
+    q.set_session(session_);
     q.set_kind(v1::QUERY_KIND_RADIUS);
     q.set_radius(0.01);
     q.set_include_distances(true);
@@ -701,7 +710,7 @@ TEST(HardeningMemory, StepWithoutRoomForACopyWaitsForReaders) {
     std::this_thread::sleep_for(std::chrono::milliseconds(5));
   }
   ASSERT_TRUE(first_chunk && !reader_failed);
-  auto steps = client.OpenSteps(s->name());
+  auto steps = client_->OpenSteps(session_);
   ASSERT_TRUE(steps.ok());
   auto ack = (*steps)->MoveBy(std::vector<double>(2 * n, 1e-5));
   const Clock::time_point step_done = Clock::now();
@@ -710,22 +719,20 @@ TEST(HardeningMemory, StepWithoutRoomForACopyWaitsForReaders) {
   // It waited for the reader (which sees its end a moment after the
   // server's handler dropped the snapshot).
   EXPECT_GE(step_done + std::chrono::milliseconds(100), query_done);
-  EXPECT_EQ(client.GetSession(s->name())->step(), 1u);
+  EXPECT_EQ(client_->GetSession(session_)->step(), 1u);
 }
 
 // Defect 6: deleting a session returned nothing to the OS.
-TEST(HardeningMemory, DeleteReturnsMemory) {
-  testing::ServerProcess server(KINETRI_SERVER_BINARY, {"--threads=2"});
-  ASSERT_TRUE(server.ok());
-  Client client(server.target());
-  auto rss_mb = [&] { return ProcStatusKb(server.pid(), "VmRSS") / 1024.0; };
+TEST_F(HardeningMemory, DeleteReturnsMemory) {
+  ASSERT_NO_FATAL_FAILURE(Start(0));
+  auto rss_mb = [&] { return ProcStatusKb(server_->pid(), "VmRSS") / 1024.0; };
   const double before = rss_mb();
   auto s =
-      client.CreateSession(UniformXY(500000, 6), v1::SessionOptions(), "big");
+      client_->CreateSession(UniformXY(500000, 6), v1::SessionOptions(), "big");
   ASSERT_TRUE(s.ok()) << s.status();
-  ASSERT_TRUE(client.NearestOfAll(s->name()).ok());
+  ASSERT_TRUE(client_->NearestOfAll(s->name()).ok());
   const double held = rss_mb();
-  ASSERT_TRUE(client.DeleteSession(s->name()).ok());
+  ASSERT_TRUE(client_->DeleteSession(s->name()).ok());
   // The last reader may release its snapshot a moment after its call ended.
   double after = rss_mb();
   for (int i = 0; i < 10 && after - before >= 0.25 * (held - before); ++i) {
