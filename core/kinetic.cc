@@ -278,9 +278,7 @@ bool KineticExecutor::Fix(Mesh& mesh, const std::vector<Vec2>& pos,
 void KineticExecutor::Undo(Mesh& mesh, const FixLog& log) {
   const MeshView m = mesh.view();
   for (auto it = log.flips.rbegin(); it != log.flips.rend(); ++it) {
-    m.Flip(*it);
-    m.Flip(*it);
-    m.Flip(*it);
+    m.Unflip(*it);
   }
   auto& ve = mesh.mutable_vertex_edge();
   for (auto it = log.vertex_edges.rbegin(); it != log.vertex_edges.rend();

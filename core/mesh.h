@@ -36,6 +36,7 @@
 #ifndef KINETRI_CORE_MESH_H_
 #define KINETRI_CORE_MESH_H_
 
+#include <cstddef>
 #include <cstdint>
 #include <vector>
 
@@ -103,6 +104,30 @@ struct MeshView {
     twin[fp] = tw_en;
     twin[tw_en] = fp;
   }
+  // Undoes Flip(e) (the same as flipping e three more times, in one).
+  KINETRI_HD void Unflip(uint32_t e) const {
+    const uint32_t f = twin[e];
+    const uint32_t en = Next(e), ep = Prev(e);
+    const uint32_t fn = Next(f), fp = Prev(f);
+    const uint32_t d = origin[e], c = origin[en], a = origin[ep];
+    const uint32_t b = origin[fp];
+    const uint32_t tw_ep = twin[en], tw_fn = twin[ep];
+    const uint32_t tw_fp = twin[fn], tw_en = twin[fp];
+    origin[e] = a;
+    origin[en] = b;
+    origin[ep] = c;
+    origin[f] = b;
+    origin[fn] = a;
+    origin[fp] = d;
+    twin[en] = tw_en;
+    twin[tw_en] = en;
+    twin[ep] = tw_ep;
+    twin[tw_ep] = ep;
+    twin[fn] = tw_fn;
+    twin[tw_fn] = fn;
+    twin[fp] = tw_fp;
+    twin[tw_fp] = fp;
+  }
 };
 
 // Owning mesh. Vertices are 0..num_vertices-1 plus kInfiniteVertex.
@@ -149,6 +174,10 @@ class Mesh {
   uint32_t AllocateTriangle();
   void FreeTriangle(uint32_t t);
   bool has_free_triangles() const { return !free_.empty(); }
+  size_t num_free_triangles() const { return free_.size(); }
+  // Undoes the FreeTriangle calls made since there were `count` free slots
+  // (the caller restores their contents).
+  void TakeBackFreed(size_t count) { free_.resize(count); }
   // Moves the last triangles into free slots so that none remain.
   void Compact();
 

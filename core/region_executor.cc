@@ -239,9 +239,7 @@ void AppendStarAndHullRing(const Mesh& mesh, uint32_t v,
 
 void Undo(const MeshView& m, const std::vector<uint32_t>& log, Mesh* mesh) {
   for (auto it = log.rbegin(); it != log.rend(); ++it) {
-    m.Flip(*it);
-    m.Flip(*it);
-    m.Flip(*it);
+    m.Unflip(*it);
     if (mesh) mesh->UpdateVertexEdgesAfterFlip(*it);
   }
 }
@@ -491,12 +489,10 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
   return false;
 }
 
-bool RegionExecutor::MoveHeldInRegion(Mesh& mesh, uint32_t v,
-                                      const Vec2& target,
-                                      const RegionStepPolicy& policy,
-                                      uint32_t lo, uint32_t hi,
-                                      RegionStepStats* stats,
-                                      std::vector<uint32_t>* late_edges) {
+bool RegionExecutor::MoveHeldInRegion(
+    Mesh& mesh, uint32_t v, const Vec2& target, const RegionStepPolicy& policy,
+    uint32_t lo, uint32_t hi, RegionStepStats* stats,
+    std::vector<uint32_t>* late_edges, std::vector<uint32_t>* kept) {
   const MeshView m = mesh.view();
   const Bounds b{lo, hi};
   thread_local std::vector<uint32_t> around, stack, waiting, deferred, log;
@@ -539,10 +535,11 @@ bool RegionExecutor::MoveHeldInRegion(Mesh& mesh, uint32_t v,
     }
     if (waiting.empty()) {
       counts += c;
+      kept->insert(kept->end(), log.begin(), log.end());
       SeedLegalizeAfterMove(m, mesh.vertex_edge()[v], log, &around, &stack);
       // Edges that cross the region are legalized in the serial pass.
       LegalizeLoop<true, true>(m, p, b, stack, *late_edges, &counts,
-                               tri_mark_.data(), &mesh);
+                               tri_mark_.data(), &mesh, nullptr, kept);
       if (goal == target) {
         stats->flips += counts;
         return true;
@@ -561,7 +558,8 @@ bool RegionExecutor::MoveHeldInRegion(Mesh& mesh, uint32_t v,
 
 bool RegionExecutor::MoveHeld(Mesh& mesh, uint32_t v, const Vec2& target,
                               const RegionStepPolicy& policy,
-                              RegionStepStats* stats) {
+                              RegionStepStats* stats,
+                              std::vector<uint32_t>* kept) {
   const MeshView m = mesh.view();
   std::vector<uint32_t> around, stack, waiting, deferred, log;
   FlipCounts counts;
@@ -590,10 +588,11 @@ bool RegionExecutor::MoveHeld(Mesh& mesh, uint32_t v, const Vec2& target,
                             HullWindsOnceFrom(mesh, cur_, &hull_hint_));
     if (ok) {
       counts += c;
+      kept->insert(kept->end(), log.begin(), log.end());
       // Legalize around v and wherever fixing flipped.
       SeedLegalizeAfterMove(m, mesh.vertex_edge()[v], log, &around, &stack);
       LegalizeLoop<false>(m, p, Bounds{}, stack, deferred, &counts,
-                          tri_mark_.data(), &mesh);
+                          tri_mark_.data(), &mesh, nullptr, kept);
       if (goal == target) {
         stats->flips += counts;
         return true;
@@ -620,9 +619,11 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
                           const CancelToken* cancel) {
   auto t0 = std::chrono::steady_clock::now();
   cancel_ = cancel;
-  auto stop = [&](bool mutated) {
+  // A stop before the vertex_edge refresh of legalizing (`refreshed`)
+  // undoes flips only; after it, vertex_edge is recomputed too.
+  auto stop = [&](bool refreshed) {
+    if (refreshed) UndoStep(mesh, true);
     stats->cancelled = true;
-    stats->mutated = mutated;
     *reason = "cancelled";
     return false;
   };
@@ -636,7 +637,15 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
   for (Region& g : regions_) {
     g.invalid.clear();
     g.illegal.clear();
+    g.log.clear();
+    g.fix_log.clear();
+    g.held_log.clear();
   }
+  serial_.log.clear();
+  fix_serial_log_.clear();
+  held_log_.clear();
+  removals_.clear();
+  saved_.clear();
   cur_ = to;
   held_.assign(n, 0);
   held_list_.clear();
@@ -771,16 +780,9 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
       // Stopped before any vertex_edge changed: every flip of the step is
       // in a log, undone in reverse (legalizing, the serial fix, the
       // regions' fix) back to the mesh of `from`.
-      for (auto it = regions_.rbegin(); it != regions_.rend(); ++it) {
-        Undo(m, it->log, nullptr);
-      }
-      Undo(m, fix_serial_log_, nullptr);
-      for (auto it = regions_.rbegin(); it != regions_.rend(); ++it) {
-        Undo(m, it->fix_log, nullptr);
-      }
+      UndoStep(mesh, false);
       return stop(false);
     }
-    stats->mutated = true;  // from here on, not undone
     Region& serial = serial_;
     serial.ClearWork();
     serial.marked.clear();
@@ -792,7 +794,7 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
     }
     LegalizeLoop<false>(m, p, Bounds{}, serial.stack, serial.deferred,
                         &serial.counts, tri_mark_.data(), nullptr,
-                        &serial.marked);
+                        &serial.marked, &serial.log);
     stats->flips += serial.counts;
     ++stats->flips.legalize_rounds;
   }
@@ -843,7 +845,11 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
   if (Cancelled()) return stop(true);
   std::vector<uint32_t> left;
   {
-    for (Region& g : regions_) g.ClearWork();
+    for (Region& g : regions_) {
+      g.stack.clear();
+      g.waiting.clear();
+      g.deferred.clear();
+    }
     const uint32_t* ve = mesh.vertex_edge().data();
     for (uint32_t v : held_list_) {
       const uint32_t e = ve[v];
@@ -857,8 +863,9 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
     for_each_region([&](size_t r, uint32_t lo, uint32_t hi) {
       Region& g = regions_[r];
       for (uint32_t v : g.stack) {
-        if (Cancelled() || !MoveHeldInRegion(mesh, v, to[v], pol, lo, hi,
-                                             &rstats[r], &g.deferred)) {
+        if (Cancelled() ||
+            !MoveHeldInRegion(mesh, v, to[v], pol, lo, hi, &rstats[r],
+                              &g.deferred, &g.held_log)) {
           g.waiting.push_back(v);
         }
       }
@@ -876,27 +883,106 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
     std::vector<uint32_t> unused;
     FlipCounts c;
     LegalizeLoop<false>(m, cur_.data(), Bounds{}, late, unused, &c,
-                        tri_mark_.data(), &mesh);
+                        tri_mark_.data(), &mesh, nullptr, &held_log_);
     stats->flips += c;
     stats->held_serial = static_cast<uint32_t>(left.size());
   }
   for (size_t i = 0; i < left.size(); ++i) {
-    if (i % 64 == 63 && Cancelled()) return stop(true);
+    if (i % 16 == 15 && Cancelled()) {
+      stats->held_seconds += SecondsSince(t0);
+      return stop(true);
+    }
     const uint32_t v = left[i];
-    if (MoveHeld(mesh, v, to[v], pol, stats)) continue;
+    if (MoveHeld(mesh, v, to[v], pol, stats, &held_log_)) continue;
     const uint32_t e = mesh.vertex_edge()[v];
-    (*hints)[v] = mesh.view().Dest(e);
-    std::vector<uint32_t> touched;
-    if (!VertexOps::Remove(mesh, cur_, v, &touched, nullptr)) {
+    const uint32_t hint = mesh.view().Dest(e);
+    if (!RemoveHeld(mesh, v, stats)) {
       *reason = "could not remove a vertex for re-insertion";
+      UndoStep(mesh, true);
+      removed->clear();
       stats->held_seconds += SecondsSince(t0);
       return false;
     }
-    LegalizeSerial(mesh, cur_, touched, &stats->flips);
+    (*hints)[v] = hint;
     removed->push_back(v);
   }
   stats->held_seconds += SecondsSince(t0);
   return true;
+}
+
+bool RegionExecutor::RemoveHeld(Mesh& mesh, uint32_t v,
+                                RegionStepStats* stats) {
+  const MeshView m = mesh.view();
+  // The triangles VertexOps::Remove may rewrite: v's star (origins and
+  // twins) and the star's neighbours (the twins of the outer edges).
+  const size_t first = saved_.size();
+  removals_.push_back({held_log_.size(), first, mesh.num_free_triangles()});
+  const uint32_t e0 = mesh.vertex_edge()[v];
+  auto save = [&](uint32_t t) {
+    SavedTriangle st{t, {}, {}};
+    for (int k = 0; k < 3; ++k) {
+      st.origin[k] = m.origin[3 * t + k];
+      st.twin[k] = m.twin[3 * t + k];
+    }
+    saved_.push_back(st);
+  };
+  uint32_t e = e0;
+  size_t steps = 0;
+  do {
+    if (++steps > (1u << 16)) return false;  // as Remove: not a star
+    const uint32_t t = TriangleOf(e);
+    save(t);
+    save(TriangleOf(m.twin[Next(e)]));
+    e = m.twin[Prev(e)];
+  } while (e != e0);
+  std::vector<uint32_t> touched;
+  if (!VertexOps::Remove(mesh, cur_, v, &touched, nullptr)) return false;
+  LegalizeSerial(mesh, cur_, touched, &stats->flips, &held_log_);
+  return true;
+}
+
+void RegionExecutor::UndoStep(Mesh& mesh, bool vertex_edges_changed) {
+  const MeshView m = mesh.view();
+  // The serial held moves and removals, newest first.
+  size_t end = held_log_.size();
+  for (size_t r = removals_.size() + 1; r-- > 0;) {
+    const size_t begin = r > 0 ? removals_[r - 1].log_size : 0;
+    for (size_t i = end; i-- > begin;) m.Unflip(held_log_[i]);
+    end = begin;
+    if (r == 0) break;
+    const Removal& rm = removals_[r - 1];
+    const size_t last =
+        r < removals_.size() ? removals_[r].saved : saved_.size();
+    // Saved in star order; a triangle saved twice holds the same image.
+    for (size_t i = rm.saved; i < last; ++i) {
+      const SavedTriangle& st = saved_[i];
+      for (int k = 0; k < 3; ++k) {
+        m.origin[3 * st.slot + k] = st.origin[k];
+        m.twin[3 * st.slot + k] = st.twin[k];
+      }
+    }
+    mesh.TakeBackFreed(rm.free_slots);
+  }
+  // The regions' held moves, legalizing (the serial pass, then the
+  // regions'), fixing (the serial pass, then the regions'). The regions'
+  // flips lie in their own slots, so they are undone in parallel.
+  auto undo_regions = [&](std::vector<uint32_t> Region::*log) {
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, regions_.size(), 1),
+                      [&](const tbb::blocked_range<size_t>& range) {
+                        for (size_t r = range.begin(); r != range.end(); ++r) {
+                          Undo(m, regions_[r].*log, nullptr);
+                        }
+                      });
+  };
+  undo_regions(&Region::held_log);
+  Undo(m, serial_.log, nullptr);
+  undo_regions(&Region::log);
+  Undo(m, fix_serial_log_, nullptr);
+  undo_regions(&Region::fix_log);
+  held_log_.clear();
+  removals_.clear();
+  saved_.clear();
+  if (vertex_edges_changed) mesh.RebuildVertexEdges();
 }
 
 bool RegionExecutor::FixSerial(Mesh& mesh, const std::vector<Vec2>& pos,
@@ -930,7 +1016,8 @@ bool RegionExecutor::FixSerial(Mesh& mesh, const std::vector<Vec2>& pos,
 
 void RegionExecutor::LegalizeSerial(Mesh& mesh, const std::vector<Vec2>& pos,
                                     const std::vector<uint32_t>& seeds,
-                                    FlipCounts* counts) {
+                                    FlipCounts* counts,
+                                    std::vector<uint32_t>* log) {
   const MeshView m = mesh.view();
   std::vector<uint32_t> stack, deferred;
   stack.reserve(3 * seeds.size());
@@ -939,7 +1026,7 @@ void RegionExecutor::LegalizeSerial(Mesh& mesh, const std::vector<Vec2>& pos,
   }
   FlipCounts c;
   LegalizeLoop<false>(m, pos.data(), Bounds{}, stack, deferred, &c, nullptr,
-                      &mesh);
+                      &mesh, nullptr, log);
   if (counts) *counts += c;
 }
 

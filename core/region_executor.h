@@ -88,14 +88,10 @@ struct RegionStepStats {
   double fix_seconds = 0.0;
   double legalize_seconds = 0.0;
   double held_seconds = 0.0;
-  // The step stopped because its cancellation token fired. `mutated`: the
-  // mesh has been changed (the caller must restore it): set once the
-  // vertices held back begin to move, whatever happens then. A step that
-  // stops or fails before (scan, cost model, fixing, legalizing) leaves
-  // the mesh exactly as it was: the flips of fixing and legalizing are
-  // logged and undone.
+  // The step stopped because its cancellation token fired. A step that
+  // stops or fails leaves the mesh exactly as it was, whatever phase it is
+  // in: every flip and vertex removal it made is logged and undone.
   bool cancelled = false;
-  bool mutated = false;
 };
 
 class RegionExecutor {
@@ -107,10 +103,12 @@ class RegionExecutor {
   // triangulation of `to` over all vertices except `removed`: vertices taken
   // out because their motion could not be repaired locally, each with a
   // neighbour in `hints` (indexed by vertex) to start locating it. Returns
-  // false (with `reason`) when the step should be rebuilt instead; the mesh
-  // is then valid for some mix of positions only. `cancel` (optional) is
-  // polled per region and per held vertex; when it fires the step returns
-  // false with stats->cancelled set.
+  // false (with `reason`) when the step should be rebuilt instead. `cancel`
+  // (optional) is polled per region and per held vertex (every 16 in the
+  // serial pass); when it fires the step returns false with
+  // stats->cancelled set. A step that returns false has undone all it did:
+  // the mesh is again the Delaunay triangulation of `from` (vertex_edge
+  // may differ).
   bool Step(Mesh& mesh, const std::vector<Vec2>& from,
             const std::vector<Vec2>& to, const std::vector<uint32_t>& moved,
             const RegionStepPolicy& policy, RegionStepStats* stats,
@@ -127,7 +125,8 @@ class RegionExecutor {
                         std::vector<uint32_t>* stuck);
   static void LegalizeSerial(Mesh& mesh, const std::vector<Vec2>& pos,
                              const std::vector<uint32_t>& seed_triangles,
-                             FlipCounts* counts);
+                             FlipCounts* counts,
+                             std::vector<uint32_t>* log = nullptr);
 
   // Per triangle slot, after a successful Step: nonzero for every triangle
   // the step changed or looked at around a moved vertex (on the sparse
@@ -145,6 +144,8 @@ class RegionExecutor {
     // The region's flips of the successful fixing attempt, kept while
     // legalizing so that a stop then can undo the whole step.
     std::vector<uint32_t> fix_log;
+    // The region's flips while moving held vertices (kept: undone on stop).
+    std::vector<uint32_t> held_log;
     std::vector<uint32_t> marked;  // changed triangles (legalizing)
     // (vertex, half-edge leaving it) of the changed triangles.
     std::vector<std::pair<uint32_t, uint32_t>> owners;
@@ -157,8 +158,12 @@ class RegionExecutor {
   void HoldCulprits(const Mesh& mesh, std::vector<uint32_t> suspects);
   // Holds v at its old position; `edge` leaves v (for its star).
   void Hold(uint32_t v, uint32_t edge);
+  // Moves held vertex v (serially) towards `target`, bisecting its motion
+  // when stuck; the flips it keeps are appended to *log. False: v stays at
+  // its old or last bisected position.
   bool MoveHeld(Mesh& mesh, uint32_t v, const Vec2& target,
-                const RegionStepPolicy& policy, RegionStepStats* stats);
+                const RegionStepPolicy& policy, RegionStepStats* stats,
+                std::vector<uint32_t>* log);
   // MoveHeld for the parallel pass: v's star and everything its fixing and
   // legalizing read and write lie in triangle slots [lo, hi) (legalizing
   // edges that would leave it are appended to late_edges). False: v was
@@ -167,7 +172,17 @@ class RegionExecutor {
   bool MoveHeldInRegion(Mesh& mesh, uint32_t v, const Vec2& target,
                         const RegionStepPolicy& policy, uint32_t lo,
                         uint32_t hi, RegionStepStats* stats,
-                        std::vector<uint32_t>* late_edges);
+                        std::vector<uint32_t>* late_edges,
+                        std::vector<uint32_t>* log);
+  // Removes held vertex v (for re-insertion by the caller) and legalizes
+  // around the hole, recording in removals_ the triangles it rewrites as
+  // they were and logging the flips in held_log_.
+  bool RemoveHeld(Mesh& mesh, uint32_t v, RegionStepStats* stats);
+  // Undoes everything the step did to the mesh, in reverse: the held
+  // vertices' flips and removals, legalizing, fixing. With
+  // `vertex_edges_changed` (from legalizing's vertex_edge refresh on),
+  // vertex_edge is recomputed afterwards.
+  void UndoStep(Mesh& mesh, bool vertex_edges_changed);
 
   // The token fired (polled at most once per region or held vertex).
   bool Cancelled() const { return cancel_ != nullptr && cancel_->Cancelled(); }
@@ -183,7 +198,22 @@ class RegionExecutor {
   std::vector<Region> regions_;
   Region serial_;  // the serial pass over what crossed region boundaries
   std::vector<uint32_t> fix_serial_log_;  // the serial fix's flips (fix_log)
-  uint32_t hull_hint_ = 0;                // a ghost triangle, remembered
+  // The serial part of moving held vertices, in order: flips (held_log_)
+  // and removals, each with the triangles it rewrote as they were.
+  struct SavedTriangle {
+    uint32_t slot;
+    uint32_t origin[3];
+    uint32_t twin[3];
+  };
+  struct Removal {
+    size_t log_size;    // held_log_.size() when it happened
+    size_t saved;       // its triangles: saved_[saved, next removal's)
+    size_t free_slots;  // mesh free-list length before it
+  };
+  std::vector<uint32_t> held_log_;
+  std::vector<Removal> removals_;
+  std::vector<SavedTriangle> saved_;
+  uint32_t hull_hint_ = 0;  // a ghost triangle, remembered
 };
 
 }  // namespace kinetri::core

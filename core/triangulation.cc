@@ -1081,9 +1081,9 @@ bool Triangulation::RegionUpdate(std::vector<Vec2>& next,
   const bool ok = seeds.empty() || region_executor_.Step(
                                        mesh_, pos_, next, seeds, policy, &stats,
                                        &removed, &hints, reason, cancel);
-  if (stats.cancelled) {
-    *cancelled = stats.mutated || !reinsert.empty() ? 2 : 1;
-  }
+  // A stopped or failed executor step has left the mesh as it was; points
+  // detached from a coincident site (reinsert) have changed the sites.
+  if (stats.cancelled) *cancelled = reinsert.empty() ? 1 : 2;
   report->flips += stats.flips;
   report->held_vertices = stats.held;
   report->local_halvings = stats.halvings;
@@ -1095,7 +1095,7 @@ bool Triangulation::RegionUpdate(std::vector<Vec2>& next,
   report->legalize_seconds += stats.legalize_seconds;
   report->held_seconds += stats.held_seconds;
   if (!ok) {
-    if (untouched != nullptr) *untouched = !stats.mutated && reinsert.empty();
+    if (untouched != nullptr) *untouched = reinsert.empty();
     return false;
   }
   reinsert.insert(reinsert.end(), removed.begin(), removed.end());
@@ -1475,7 +1475,9 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
   // Back to the previous step after an attempt that changed the mesh was
   // stopped: the positions (pos_) are unchanged; the mesh and the
   // coincident-point chains are rebuilt from them (not stoppable: it is
-  // what a stop must leave).
+  // what a stop must leave). The region executor undoes its own changes,
+  // so this happens only after the round executor's later passes or when
+  // points parted from a coincident site.
   auto restore_previous = [&] {
     std::vector<Vec2> by_ext(n);
     for (uint32_t i = 0; i < n; ++i) by_ext[ext_of_int_[i]] = pos_[i];

@@ -108,6 +108,32 @@ TEST(Mesh, FourFlipsAreTheIdentityAndKeepTwins) {
   EXPECT_EQ(mesh.twin(), twin);
 }
 
+// Unflip undoes a flip exactly (every origin and twin), including a chain
+// of flips undone in reverse (what a stopped step does with its log).
+TEST(Mesh, UnflipUndoesFlipsInReverse) {
+  const auto pts = testing::UniformPoints(400, 3);
+  Mesh mesh = BuildDelaunayWithCgal(pts, AllSites(pts.size()));
+  const std::vector<uint32_t> origin = mesh.origin(), twin = mesh.twin();
+  const MeshView m = mesh.view();
+  std::mt19937 rng(4);
+  std::vector<uint32_t> log;
+  for (int i = 0; i < 200; ++i) {
+    const uint32_t e = rng() % mesh.num_half_edges();
+    if (m.IsGhost(TriangleOf(e)) || m.IsGhost(TriangleOf(m.twin[e]))) continue;
+    // Only flips that keep a triangulation (convex quads).
+    const Vec2 a = pts[m.origin[e]], b = pts[m.Dest(e)];
+    const Vec2 c = pts[m.Apex(e)], d = pts[m.Across(e)];
+    if (Orient2d(d, c, a) <= 0 || Orient2d(c, d, b) <= 0) continue;
+    m.Flip(e);
+    log.push_back(e);
+  }
+  ASSERT_GT(log.size(), 100u);
+  EXPECT_NE(mesh.origin(), origin);
+  for (auto it = log.rbegin(); it != log.rend(); ++it) m.Unflip(*it);
+  EXPECT_EQ(mesh.origin(), origin);
+  EXPECT_EQ(mesh.twin(), twin);
+}
+
 TEST(Mesh, CompactFillsFreedSlots) {
   const auto pts = testing::UniformPoints(300, 2);
   Mesh mesh = BuildDelaunayWithCgal(pts, AllSites(pts.size()));
