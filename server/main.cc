@@ -25,6 +25,7 @@
 #include "server/metrics.h"
 #include "server/query_pool.h"
 #include "server/reflection_v1.h"
+#include "server/rpc_metrics.h"
 #include "server/service.h"
 #include "server/session_registry.h"
 #ifdef KINETRI_SERVER_CUDA
@@ -360,6 +361,16 @@ int main(int argc, char** argv) {
   builder.SetMaxReceiveMessageSize(max_bytes);
   builder.SetMaxSendMessageSize(max_bytes);
   builder.RegisterService(&service);
+  // grpc_server_* metrics for every call of every service.
+  {
+    std::vector<
+        std::unique_ptr<grpc::experimental::ServerInterceptorFactoryInterface>>
+        interceptors;
+    interceptors.push_back(
+        std::make_unique<kinetri::server::RpcMetricsInterceptorFactory>(
+            &metrics));
+    builder.experimental().SetInterceptorCreators(std::move(interceptors));
+  }
   kinetri::server::ReflectionV1Service reflection_v1(
       {"kinetri.v1.KinetriService", "grpc.health.v1.Health",
        "grpc.reflection.v1.ServerReflection",

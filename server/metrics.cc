@@ -116,24 +116,26 @@ void Metrics::SetSessions(double sessions, double points) {
   points_->Set(points);
 }
 
-void Metrics::RpcStarted(const std::string& method, const std::string& type) {
+void Metrics::RpcStarted(const std::string& service, const std::string& method,
+                         const std::string& type) {
   rpc_started_
-      ->Add({{"grpc_service", "kinetri.v1.KinetriService"},
+      ->Add({{"grpc_service", service},
              {"grpc_method", method},
              {"grpc_type", type}})
       .Increment();
 }
 
-void Metrics::RpcHandled(const std::string& method, const std::string& type,
-                         const std::string& code, double seconds) {
+void Metrics::RpcHandled(const std::string& service, const std::string& method,
+                         const std::string& type, const std::string& code,
+                         double seconds) {
   rpc_handled_
-      ->Add({{"grpc_service", "kinetri.v1.KinetriService"},
+      ->Add({{"grpc_service", service},
              {"grpc_method", method},
              {"grpc_type", type},
              {"grpc_code", code}})
       .Increment();
   rpc_seconds_
-      ->Add({{"grpc_service", "kinetri.v1.KinetriService"},
+      ->Add({{"grpc_service", service},
              {"grpc_method", method},
              {"grpc_type", type}},
             LatencyBuckets())

@@ -33,10 +33,13 @@ class Metrics {
   void SetRestore(double sessions, double unavailable, double cut_bytes,
                   double seconds);
 
-  // Per-RPC accounting in the grpc_server_* shape.
-  void RpcStarted(const std::string& method, const std::string& type);
-  void RpcHandled(const std::string& method, const std::string& type,
-                  const std::string& code, double seconds);
+  // Per-RPC accounting in the grpc_server_* shape (recorded by the
+  // interceptor of server/rpc_metrics.h).
+  void RpcStarted(const std::string& service, const std::string& method,
+                  const std::string& type);
+  void RpcHandled(const std::string& service, const std::string& method,
+                  const std::string& type, const std::string& code,
+                  double seconds);
 
   prometheus::Registry& registry() { return *registry_; }
 

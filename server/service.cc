@@ -36,49 +36,6 @@ grpc::Status ToGrpc(const absl::Status& s) {
                       std::string(s.message()));
 }
 
-const char* CodeName(grpc::StatusCode c) {
-  static const char* kNames[] = {"OK",
-                                 "CANCELLED",
-                                 "UNKNOWN",
-                                 "INVALID_ARGUMENT",
-                                 "DEADLINE_EXCEEDED",
-                                 "NOT_FOUND",
-                                 "ALREADY_EXISTS",
-                                 "PERMISSION_DENIED",
-                                 "RESOURCE_EXHAUSTED",
-                                 "FAILED_PRECONDITION",
-                                 "ABORTED",
-                                 "OUT_OF_RANGE",
-                                 "UNIMPLEMENTED",
-                                 "INTERNAL",
-                                 "UNAVAILABLE",
-                                 "DATA_LOSS",
-                                 "UNAUTHENTICATED"};
-  const int i = static_cast<int>(c);
-  return (i >= 0 && i <= 16) ? kNames[i] : "UNKNOWN";
-}
-
-// Records grpc_server_* metrics for one RPC.
-class RpcScope {
- public:
-  RpcScope(Metrics* m, const char* method, const char* type)
-      : m_(m), method_(method), type_(type), start_(Clock::now()) {
-    m_->RpcStarted(method_, type_);
-  }
-  grpc::Status Done(grpc::Status s) {
-    m_->RpcHandled(
-        method_, type_, CodeName(s.error_code()),
-        std::chrono::duration<double>(Clock::now() - start_).count());
-    return s;
-  }
-
- private:
-  Metrics* m_;
-  const char* method_;
-  const char* type_;
-  Clock::time_point start_;
-};
-
 google::protobuf::Timestamp ToTimestamp(absl::Time t) {
   google::protobuf::Timestamp ts;
   const int64_t ns = absl::ToUnixNanos(t);
@@ -354,51 +311,49 @@ void KinetriServiceImpl::UpdateGauges() {
 grpc::Status KinetriServiceImpl::CreateSessionFromBytes(
     grpc::ServerContext* ctx, grpc::ServerReader<grpc::ByteBuffer>* reader,
     v1::Session* response) {
-  RpcScope rpc(metrics_, "CreateSession", "client_stream");
   auto tenant = Caller(*ctx);
-  if (!tenant.ok()) return rpc.Done(ToGrpc(tenant.status()));
+  if (!tenant.ok()) return ToGrpc(tenant.status());
   v1::CreateSessionRequest msg;
   MessageReader<v1::CreateSessionRequest, grpc::ServerReader<grpc::ByteBuffer>>
       messages(reader);
   absl::StatusOr<bool> got = messages.Read(&msg);
-  if (!got.ok()) return rpc.Done(ToGrpc(got.status()));
+  if (!got.ok()) return ToGrpc(got.status());
   if (!*got || !msg.has_header()) {
-    return rpc.Done(grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                                 "header: the first message must carry the "
-                                 "session header"));
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                        "header: the first message must carry the "
+                        "session header");
   }
   const v1::CreateSessionHeader header = msg.header();
   absl::Status st = registry_->CheckCapacity(header.point_count(), *tenant);
-  if (!st.ok()) return rpc.Done(ToGrpc(st));
+  if (!st.ok()) return ToGrpc(st);
   std::string id = header.session_id();
   if (id.empty()) {
     id = registry_->NewId();
   } else if (!ValidSessionId(id)) {
-    return rpc.Done(
-        grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                     absl::StrCat("header.session_id: \"", EchoForError(id),
-                                  "\" must match [a-z0-9-]{1,63}")));
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                        absl::StrCat("header.session_id: \"", EchoForError(id),
+                                     "\" must match [a-z0-9-]{1,63}"));
   }
   const ServerLimits& limits = registry_->limits();
   const v1::Backend asked = header.options().backend();
   if (asked == v1::BACKEND_CUDA && !limits.has_device) {
-    return rpc.Done(grpc::Status(
+    return grpc::Status(
         grpc::StatusCode::FAILED_PRECONDITION,
         "header.options.backend: this server has no device executor (built "
         "without CUDA, no GPU present, or --device=none); use BACKEND_AUTO or "
-        "BACKEND_CPU"));
+        "BACKEND_CPU");
   }
   const bool on_device = limits.has_device && asked != v1::BACKEND_CPU;
   const uint64_t device_bytes =
       on_device ? header.point_count() * core::device::kDeviceBytesPerPoint : 0;
   if (on_device &&
       device_bytes > core::device::DeviceFreeBytes(limits.device)) {
-    return rpc.Done(grpc::Status(
+    return grpc::Status(
         grpc::StatusCode::RESOURCE_EXHAUSTED,
         absl::StrCat(
             "CreateSession of ", header.point_count(), " points needs ",
             device_bytes >> 20, " MiB of device memory; ",
-            core::device::DeviceFreeBytes(limits.device) >> 20, " MiB free")));
+            core::device::DeviceFreeBytes(limits.device) >> 20, " MiB free"));
   }
   // Admitted against the memory budget before any point is stored (the
   // emulated device's memory is host memory).
@@ -408,7 +363,7 @@ grpc::Status KinetriServiceImpl::CreateSessionFromBytes(
       header.point_count() * MemoryBudget::kSessionBytesPerPoint +
           (host_device ? device_bytes : 0),
       absl::StrCat("CreateSession of ", header.point_count(), " points"));
-  if (!memory.ok()) return rpc.Done(ToGrpc(memory.status()));
+  if (!memory.ok()) return ToGrpc(memory.status());
   const bool client_ids =
       header.options().point_id_policy() == v1::POINT_ID_POLICY_CLIENT;
   // Memory follows the points received, not the announced count (a client
@@ -419,58 +374,57 @@ grpc::Status KinetriServiceImpl::CreateSessionFromBytes(
   IdleWatchdog::Registration idle(watchdog_, ctx);
   while (true) {
     got = messages.Read(&msg);
-    if (!got.ok()) return rpc.Done(ToGrpc(got.status()));
+    if (!got.ok()) return ToGrpc(got.status());
     if (!*got) break;
     idle.Touch();
     if (ctx->IsCancelled()) {
-      return rpc.Done(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled"));
+      return grpc::Status(grpc::StatusCode::CANCELLED, "cancelled");
     }
     if (!msg.has_points()) {
-      return rpc.Done(
-          grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                       absl::StrCat("points: message ", chunk + 1,
-                                    " after the header carries no points")));
+      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                          absl::StrCat("points: message ", chunk + 1,
+                                       " after the header carries no points"));
     }
     const size_t before = points.size();
     st = AppendPoints(msg.points().xy(), absl::StrCat("points[", chunk, "].xy"),
                       &points);
-    if (!st.ok()) return rpc.Done(ToGrpc(st));
+    if (!st.ok()) return ToGrpc(st);
     if (client_ids) {
       if (static_cast<size_t>(msg.points().ids_size()) !=
           points.size() - before) {
-        return rpc.Done(grpc::Status(
+        return grpc::Status(
             grpc::StatusCode::INVALID_ARGUMENT,
             absl::StrCat("points[", chunk, "].ids: ", msg.points().ids_size(),
                          " ids for ", points.size() - before,
-                         " points (POINT_ID_POLICY_CLIENT names each point)")));
+                         " points (POINT_ID_POLICY_CLIENT names each point)"));
       }
       ids.insert(ids.end(), msg.points().ids().begin(),
                  msg.points().ids().end());
     } else if (msg.points().ids_size() > 0) {
-      return rpc.Done(grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                                   absl::StrCat("points[", chunk,
-                                                "].ids: set only with "
-                                                "POINT_ID_POLICY_CLIENT")));
+      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                          absl::StrCat("points[", chunk,
+                                       "].ids: set only with "
+                                       "POINT_ID_POLICY_CLIENT"));
     }
     if (points.size() > header.point_count()) {
-      return rpc.Done(
-          grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                       absl::StrCat("points: more than header.point_count = ",
-                                    header.point_count(), " points sent")));
+      return grpc::Status(
+          grpc::StatusCode::INVALID_ARGUMENT,
+          absl::StrCat("points: more than header.point_count = ",
+                       header.point_count(), " points sent"));
     }
     ++chunk;
   }
   if (idle.timed_out()) {
-    return rpc.Done(grpc::Status(
+    return grpc::Status(
         grpc::StatusCode::CANCELLED,
         "points: the client sent nothing for longer than the server's "
-        "--stream_idle_timeout_seconds; session not created"));
+        "--stream_idle_timeout_seconds; session not created");
   }
   if (points.size() != header.point_count()) {
-    return rpc.Done(grpc::Status(
+    return grpc::Status(
         grpc::StatusCode::INVALID_ARGUMENT,
         absl::StrCat("points: ", points.size(), " points sent, header says ",
-                     header.point_count())));
+                     header.point_count()));
   }
   if (client_ids) {
     absl::flat_hash_map<uint64_t, uint64_t> seen;
@@ -478,20 +432,20 @@ grpc::Status KinetriServiceImpl::CreateSessionFromBytes(
     for (uint64_t i = 0; i < ids.size(); ++i) {
       auto [it, fresh] = seen.emplace(ids[i], i);
       if (!fresh) {
-        return rpc.Done(grpc::Status(
+        return grpc::Status(
             grpc::StatusCode::INVALID_ARGUMENT,
             absl::StrCat("points.ids: id ", ids[i], " given to points ",
-                         it->second, " and ", i)));
+                         it->second, " and ", i));
       }
     }
   }
   core::TriangulationOptions opt;
   if (header.options().threads() > registry_->limits().max_threads) {
-    return rpc.Done(grpc::Status(
+    return grpc::Status(
         grpc::StatusCode::INVALID_ARGUMENT,
         absl::StrCat("options.threads: ", header.options().threads(),
                      " exceeds the limit of ", registry_->limits().max_threads,
-                     " (0 = the server's default)")));
+                     " (0 = the server's default)"));
   }
   const uint32_t threads = header.options().threads()
                                ? header.options().threads()
@@ -507,7 +461,7 @@ grpc::Status KinetriServiceImpl::CreateSessionFromBytes(
       [this, ctx] { return stop_all_.load() || ctx->IsCancelled(); },
       ToSteadyDeadline(ctx->deadline()));
   auto tri = core::Triangulation::Create(points, opt, &cancel);
-  if (!tri.ok()) return rpc.Done(ToGrpc(tri.status()));
+  if (!tri.ok()) return ToGrpc(tri.status());
   const uint64_t max_results =
       header.options().max_query_results()
           ? std::min(header.options().max_query_results(),
@@ -515,11 +469,11 @@ grpc::Status KinetriServiceImpl::CreateSessionFromBytes(
           : registry_->limits().max_query_results;
   constexpr uint64_t kMaxTtl = uint64_t{100} * 365 * 24 * 3600;
   if (header.options().idle_ttl_seconds() > kMaxTtl) {
-    return rpc.Done(grpc::Status(
+    return grpc::Status(
         grpc::StatusCode::INVALID_ARGUMENT,
         absl::StrCat(
             "options.idle_ttl_seconds: ", header.options().idle_ttl_seconds(),
-            " exceeds 100 years (0: the server's default)")));
+            " exceeds 100 years (0: the server's default)"));
   }
   auto session = std::make_shared<Session>(
       id, std::move(*tri),
@@ -543,18 +497,18 @@ grpc::Status KinetriServiceImpl::CreateSessionFromBytes(
     create_lock.emplace(&create_mu_);
     // Durable: the first snapshot is on disk before the session exists.
     if (registry_->Get(session->name(), tenant->name).ok()) {
-      return rpc.Done(grpc::Status(
+      return grpc::Status(
           grpc::StatusCode::ALREADY_EXISTS,
-          absl::StrCat("session_id: ", session->name(), " already exists")));
+          absl::StrCat("session_id: ", session->name(), " already exists"));
     }
     session->set_tenant(tenant->name);
     const Session::Snapshot snap = session->Read();
     auto journal = store_->Create(session->Meta(0), *snap.tri);
     if (!journal.ok()) {
-      return rpc.Done(ToGrpc(
+      return ToGrpc(
           absl::Status(journal.status().code(),
                        absl::StrCat("session not created: cannot persist it: ",
-                                    journal.status().message()))));
+                                    journal.status().message())));
     }
     session->AttachJournal(*std::move(journal));
     absl::MutexLock lock(&broken_mu_);
@@ -567,41 +521,39 @@ grpc::Status KinetriServiceImpl::CreateSessionFromBytes(
       session->journal()->Close();
       store_->Remove(tenant->name, session->id()).IgnoreError();
     }
-    return rpc.Done(ToGrpc(added.status()));
+    return ToGrpc(added.status());
   }
   *response = Describe(**added);
   UpdateGauges();
-  return rpc.Done(grpc::Status::OK);
+  return grpc::Status::OK;
 }
 
 grpc::Status KinetriServiceImpl::GetSession(grpc::ServerContext* ctx,
                                             const v1::GetSessionRequest* req,
                                             v1::Session* response) {
-  RpcScope rpc(metrics_, "GetSession", "unary");
   auto tenant = Caller(*ctx);
-  if (!tenant.ok()) return rpc.Done(ToGrpc(tenant.status()));
+  if (!tenant.ok()) return ToGrpc(tenant.status());
   auto s = Lookup(req->name(), tenant->name);
-  if (!s.ok()) return rpc.Done(ToGrpc(s.status()));
+  if (!s.ok()) return ToGrpc(s.status());
   *response = Describe(**s);
-  return rpc.Done(grpc::Status::OK);
+  return grpc::Status::OK;
 }
 
 grpc::Status KinetriServiceImpl::ListSessions(
     grpc::ServerContext* ctx, const v1::ListSessionsRequest* req,
     v1::ListSessionsResponse* response) {
-  RpcScope rpc(metrics_, "ListSessions", "unary");
   auto tenant = Caller(*ctx);
-  if (!tenant.ok()) return rpc.Done(ToGrpc(tenant.status()));
+  if (!tenant.ok()) return ToGrpc(tenant.status());
   if (req->page_size() < 0) {
-    return rpc.Done(grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                                 "page_size: must be >= 0"));
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                        "page_size: must be >= 0");
   }
   const size_t page =
       req->page_size() == 0 ? 50 : std::min<size_t>(req->page_size(), 1000);
   std::string after;
   if (!req->page_token().empty()) {
     auto id = DecodePageToken(req->page_token());
-    if (!id.ok()) return rpc.Done(ToGrpc(id.status()));
+    if (!id.ok()) return ToGrpc(id.status());
     after = *id;
   }
   auto list = registry_->List(after, page + 1, tenant->name);
@@ -611,26 +563,25 @@ grpc::Status KinetriServiceImpl::ListSessions(
   if (list.size() > page) {
     response->set_next_page_token(EncodePageToken(list[page - 1]->id()));
   }
-  return rpc.Done(grpc::Status::OK);
+  return grpc::Status::OK;
 }
 
 grpc::Status KinetriServiceImpl::DeleteSession(
     grpc::ServerContext* ctx, const v1::DeleteSessionRequest* req,
     google::protobuf::Empty*) {
-  RpcScope rpc(metrics_, "DeleteSession", "unary");
   auto tenant = Caller(*ctx);
-  if (!tenant.ok()) return rpc.Done(ToGrpc(tenant.status()));
+  if (!tenant.ok()) return ToGrpc(tenant.status());
   auto session = Lookup(req->name(), tenant->name);
   if (!session.ok() && store_ != nullptr &&
       session.status().code() == absl::StatusCode::kDataLoss) {
     // A session whose snapshot is corrupt: deleting drops its files.
     auto id = ParseSessionName(req->name(), "name");
-    if (!id.ok()) return rpc.Done(ToGrpc(id.status()));
+    if (!id.ok()) return ToGrpc(id.status());
     {
       absl::MutexLock lock(&broken_mu_);
       broken_.erase(SessionStore::Key(tenant->name, *id));
     }
-    return rpc.Done(ToGrpc(store_->Remove(tenant->name, *id)));
+    return ToGrpc(store_->Remove(tenant->name, *id));
   }
   const absl::Status st = registry_->Remove(req->name(), tenant->name);
   if (st.ok() && session.ok() && (*session)->journal() != nullptr) {
@@ -638,15 +589,14 @@ grpc::Status KinetriServiceImpl::DeleteSession(
     store_->Remove(tenant->name, (*session)->id()).IgnoreError();
   }
   UpdateGauges();
-  return rpc.Done(ToGrpc(st));
+  return ToGrpc(st);
 }
 
 grpc::Status KinetriServiceImpl::StreamStepsFromBytes(
     grpc::ServerContext* ctx,
     grpc::ServerReaderWriter<v1::StepResponse, grpc::ByteBuffer>* stream) {
-  RpcScope rpc(metrics_, "StreamSteps", "bidi_stream");
   auto tenant = Caller(*ctx);
-  if (!tenant.ok()) return rpc.Done(ToGrpc(tenant.status()));
+  if (!tenant.ok()) return ToGrpc(tenant.status());
   std::shared_ptr<Session> session;
   StepAssembler assembler;
   v1::StepRequest req;
@@ -659,54 +609,54 @@ grpc::Status KinetriServiceImpl::StreamStepsFromBytes(
     if (!got.ok()) {
       // Corrupt bytes: the open step (if any) is not applied; steps already
       // acknowledged stay.
-      return rpc.Done(ToGrpc(got.status()));
+      return ToGrpc(got.status());
     }
     if (!*got) break;
     idle.Touch();
     if (ctx->IsCancelled()) {
-      return rpc.Done(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled"));
+      return grpc::Status(grpc::StatusCode::CANCELLED, "cancelled");
     }
     if (!session) {
       if (req.session().empty()) {
-        return rpc.Done(grpc::Status(
+        return grpc::Status(
             grpc::StatusCode::INVALID_ARGUMENT,
-            "session: required on the first message of the stream"));
+            "session: required on the first message of the stream");
       }
       auto s = Lookup(req.session(), tenant->name);
-      if (!s.ok()) return rpc.Done(ToGrpc(s.status()));
+      if (!s.ok()) return ToGrpc(s.status());
       session = *s;
     } else if (!req.session().empty() && req.session() != session->name()) {
-      return rpc.Done(grpc::Status(
+      return grpc::Status(
           grpc::StatusCode::INVALID_ARGUMENT,
           absl::StrCat("session: \"", req.session(), "\" differs from ",
-                       session->name(), " used earlier on this stream")));
+                       session->name(), " used earlier on this stream"));
     }
     absl::Status st = assembler.Add(req);
-    if (!st.ok()) return rpc.Done(ToGrpc(st));
+    if (!st.ok()) return ToGrpc(st);
     // A step moves and removes each point at most once, and adds at most
     // the session's limit: a stream that never ends its step cannot make
     // the server buffer more than one step's worth.
     if (assembler.size() > session->point_count() ||
         assembler.removed() > session->point_count()) {
-      return rpc.Done(grpc::Status(
+      return grpc::Status(
           grpc::StatusCode::INVALID_ARGUMENT,
           absl::StrCat("step ", assembler.step(), ": more than ",
                        session->point_count(),
                        " values or removed points (the session's point "
-                       "count) before end_of_step; not applied")));
+                       "count) before end_of_step; not applied"));
     }
     if (assembler.added() > registry_->limits().max_points_per_session) {
-      return rpc.Done(grpc::Status(
+      return grpc::Status(
           grpc::StatusCode::RESOURCE_EXHAUSTED,
           absl::StrCat("step ", assembler.step(), ": more than ",
                        registry_->limits().max_points_per_session,
-                       " points added (the limit per session); not applied")));
+                       " points added (the limit per session); not applied"));
     }
     if (!req.end_of_step()) continue;
     const uint64_t step = assembler.step();
     const std::string request_id = assembler.request_id();
     absl::StatusOr<AssembledStep> batch = assembler.Take(*session);
-    if (!batch.ok()) return rpc.Done(ToGrpc(batch.status()));
+    if (!batch.ok()) return ToGrpc(batch.status());
     v1::StepResponse resp;
     // A client that cancels (or whose deadline passes) mid-step stops it;
     // the session stays at its previous step.
@@ -719,7 +669,7 @@ grpc::Status KinetriServiceImpl::StreamStepsFromBytes(
         session->has_client_ids() ? &batch->client_ids : nullptr, &cancel,
         nullptr, request_id, &replayed);
     session->Touch();
-    if (!report.ok()) return rpc.Done(ToGrpc(report.status()));
+    if (!report.ok()) return ToGrpc(report.status());
     // A resent step (same request_id) gets its original acknowledgement.
     if (!replayed) metrics_->ObserveStep(session->backend(), *report);
     resp.set_step(step);
@@ -731,44 +681,42 @@ grpc::Status KinetriServiceImpl::StreamStepsFromBytes(
     if (!stream->Write(resp)) break;  // client went away; step is applied
   }
   if (idle.timed_out()) {
-    return rpc.Done(grpc::Status(
+    return grpc::Status(
         grpc::StatusCode::CANCELLED,
         absl::StrCat(
             "the client sent nothing for longer than the server's "
             "--stream_idle_timeout_seconds",
-            assembler.empty() ? "" : "; the open step was not applied")));
+            assembler.empty() ? "" : "; the open step was not applied"));
   }
   if (!assembler.empty()) {
     // The stream ended inside a step: it was never applied.
-    return rpc.Done(grpc::Status(
+    return grpc::Status(
         grpc::StatusCode::INVALID_ARGUMENT,
         absl::StrCat("step ", assembler.step(),
-                     ": stream ended before end_of_step; not applied")));
+                     ": stream ended before end_of_step; not applied"));
   }
-  return rpc.Done(grpc::Status::OK);
+  return grpc::Status::OK;
 }
 
 grpc::Status KinetriServiceImpl::QueryFromBytes(grpc::ServerContext* ctx,
                                                 BytesStream* stream) {
-  RpcScope rpc(metrics_, "Query", "server_stream");
   MessageReader<v1::QueryRequest, BytesStream> messages(stream);
   v1::QueryRequest req;
   absl::StatusOr<bool> got = messages.Read(&req);
-  if (!got.ok()) return rpc.Done(ToGrpc(got.status()));
+  if (!got.ok()) return ToGrpc(got.status());
   if (!*got) {
-    return rpc.Done(grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                                 "Query: no query was sent"));
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                        "Query: no query was sent");
   }
-  return rpc.Done(RunQuery(ctx, req, [stream](const grpc::ByteBuffer& b) {
+  return RunQuery(ctx, req, [stream](const grpc::ByteBuffer& b) {
     return stream->Write(b);
-  }));
+  });
 }
 
 grpc::Status KinetriServiceImpl::StreamQueryFromBytes(grpc::ServerContext* ctx,
                                                       BytesStream* stream) {
-  RpcScope rpc(metrics_, "StreamQuery", "bidi_stream");
   auto tenant = Caller(*ctx);
-  if (!tenant.ok()) return rpc.Done(ToGrpc(tenant.status()));
+  if (!tenant.ok()) return ToGrpc(tenant.status());
   // The first message is the query; the others add targets of the same
   // kind. Targets are held until the client half-closes: bounded by
   // --max_points and reserved from the memory budget as they arrive.
@@ -776,16 +724,16 @@ grpc::Status KinetriServiceImpl::StreamQueryFromBytes(grpc::ServerContext* ctx,
   IdleWatchdog::Registration idle(watchdog_, ctx);
   MessageReader<v1::QueryRequest, BytesStream> messages(stream);
   absl::StatusOr<bool> got = messages.Read(&req);
-  if (!got.ok()) return rpc.Done(ToGrpc(got.status()));
+  if (!got.ok()) return ToGrpc(got.status());
   if (!*got) {
-    return rpc.Done(grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                                 "StreamQuery: no query was sent"));
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                        "StreamQuery: no query was sent");
   }
   if (!req.has_positions() && !req.has_point_ids()) {
-    return rpc.Done(grpc::Status(
+    return grpc::Status(
         grpc::StatusCode::INVALID_ARGUMENT,
         "targets: StreamQuery streams positions or point_ids (all_points "
-        "needs no stream: use Query)"));
+        "needs no stream: use Query)");
   }
   const uint64_t max_targets = registry_->limits().max_points_per_session;
   MemoryBudget::Reservation held;
@@ -797,10 +745,10 @@ grpc::Status KinetriServiceImpl::StreamQueryFromBytes(grpc::ServerContext* ctx,
   while (true) {
     const uint64_t count = targets();
     if (count > max_targets) {
-      return rpc.Done(grpc::Status(
+      return grpc::Status(
           grpc::StatusCode::RESOURCE_EXHAUSTED,
           absl::StrCat("targets: more than ", max_targets,
-                       " in one query (the server's --max_points)")));
+                       " in one query (the server's --max_points)"));
     }
     // 16 bytes per target held, 2x for the answer's bookkeeping.
     const uint64_t need = 32 * count;
@@ -808,34 +756,34 @@ grpc::Status KinetriServiceImpl::StreamQueryFromBytes(grpc::ServerContext* ctx,
       absl::Status r = budget_->GrowTo(
           &held, std::max<uint64_t>(need, held.bytes() + (8 << 20)),
           "StreamQuery targets");
-      if (!r.ok()) return rpc.Done(ToGrpc(r));
+      if (!r.ok()) return ToGrpc(r);
     }
     got = messages.Read(&more);
-    if (!got.ok()) return rpc.Done(ToGrpc(got.status()));
+    if (!got.ok()) return ToGrpc(got.status());
     if (!*got) break;
     idle.Touch();
     if (ctx->IsCancelled()) {
-      return rpc.Done(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled"));
+      return grpc::Status(grpc::StatusCode::CANCELLED, "cancelled");
     }
     if (!more.session().empty() && more.session() != req.session()) {
-      return rpc.Done(grpc::Status(
+      return grpc::Status(
           grpc::StatusCode::INVALID_ARGUMENT,
-          "session: every message of a StreamQuery names the same session"));
+          "session: every message of a StreamQuery names the same session");
     }
     if (more.has_all_points() ||
         (req.has_positions() && more.has_point_ids()) ||
         (req.has_point_ids() && more.has_positions())) {
-      return rpc.Done(grpc::Status(
+      return grpc::Status(
           grpc::StatusCode::INVALID_ARGUMENT,
           "targets: every message of a StreamQuery carries the same kind of "
-          "targets as the first"));
+          "targets as the first");
     }
     if (more.has_positions()) {
       if (more.positions().xy_size() % 2 != 0) {
-        return rpc.Done(grpc::Status(
+        return grpc::Status(
             grpc::StatusCode::INVALID_ARGUMENT,
             absl::StrCat("positions.xy: ", more.positions().xy_size(),
-                         " coordinates is odd (expected x, y pairs)")));
+                         " coordinates is odd (expected x, y pairs)"));
       }
       req.mutable_positions()->mutable_xy()->Add(more.positions().xy().begin(),
                                                  more.positions().xy().end());
@@ -848,14 +796,13 @@ grpc::Status KinetriServiceImpl::StreamQueryFromBytes(grpc::ServerContext* ctx,
     }
   }
   if (idle.timed_out()) {
-    return rpc.Done(
-        grpc::Status(grpc::StatusCode::CANCELLED,
-                     "the client sent nothing for longer than the server's "
-                     "--stream_idle_timeout_seconds"));
+    return grpc::Status(grpc::StatusCode::CANCELLED,
+                        "the client sent nothing for longer than the server's "
+                        "--stream_idle_timeout_seconds");
   }
-  return rpc.Done(RunQuery(ctx, req, [stream](const grpc::ByteBuffer& b) {
+  return RunQuery(ctx, req, [stream](const grpc::ByteBuffer& b) {
     return stream->Write(b);
-  }));
+  });
 }
 
 grpc::Status KinetriServiceImpl::RunQuery(
@@ -1092,11 +1039,10 @@ grpc::Status KinetriServiceImpl::RunQuery(
 grpc::Status KinetriServiceImpl::ExportTriangulation(
     grpc::ServerContext* ctx, const v1::ExportTriangulationRequest* req,
     grpc::ServerWriter<v1::ExportTriangulationResponse>* writer) {
-  RpcScope rpc(metrics_, "ExportTriangulation", "server_stream");
   auto tenant = Caller(*ctx);
-  if (!tenant.ok()) return rpc.Done(ToGrpc(tenant.status()));
+  if (!tenant.ok()) return ToGrpc(tenant.status());
   auto s = Lookup(req->session(), tenant->name);
-  if (!s.ok()) return rpc.Done(ToGrpc(s.status()));
+  if (!s.ok()) return ToGrpc(s.status());
   std::vector<core::Vec2> pos;
   std::vector<std::array<uint32_t, 3>> tris;
   std::shared_ptr<const PointIdMap> ids;
@@ -1111,7 +1057,7 @@ grpc::Status KinetriServiceImpl::ExportTriangulation(
             &memory, n * (sizeof(core::Vec2) + 2 * 3 * sizeof(uint32_t)),
             "ExportTriangulation");
         !st.ok()) {
-      return rpc.Done(ToGrpc(st));
+      return ToGrpc(st);
     }
     step = snap.step;
     pos = snap.tri->Positions();
@@ -1124,7 +1070,7 @@ grpc::Status KinetriServiceImpl::ExportTriangulation(
   size_t p = 0, t = 0;
   do {
     if (ctx->IsCancelled()) {
-      return rpc.Done(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled"));
+      return grpc::Status(grpc::StatusCode::CANCELLED, "cancelled");
     }
     v1::ExportTriangulationResponse r;
     r.set_step(step);
@@ -1144,7 +1090,7 @@ grpc::Status KinetriServiceImpl::ExportTriangulation(
     }
     if (!writer->Write(r)) break;
   } while (p < pos.size() || t < tris.size());
-  return rpc.Done(grpc::Status::OK);
+  return grpc::Status::OK;
 }
 
 }  // namespace kinetri::server

@@ -17,6 +17,7 @@
 #include "core/predicates.h"
 #include "google/protobuf/descriptor.pb.h"
 #include "grpc/reflection/v1/reflection.grpc.pb.h"
+#include "tests/e2e/raw_call.h"
 #include "tests/e2e/server_process.h"
 
 namespace kinetri {
@@ -807,6 +808,57 @@ TEST_F(E2eTest, MetricsMove) {
       std::string::npos);
   EXPECT_NE(after.find("grpc_code=\"INVALID_ARGUMENT\""), std::string::npos);
   EXPECT_NE(after.find("kinetri_sessions 1"), std::string::npos);
+}
+
+// Every call is counted by the metrics interceptor (server/rpc_metrics.h),
+// whatever path its handler returned by, with grpc_type from the method's
+// proto definition (the handlers taking raw bytes are registered as
+// bidirectional streams); methods the server does not have are counted
+// under "unknown".
+TEST_F(E2eTest, MetricsCountEveryCallWithItsProtoType) {
+  const std::vector<double> xy = Uniform(300, 41);
+  auto s = client_->CreateSession(xy, v1::SessionOptions());
+  ASSERT_TRUE(s.ok());
+  EXPECT_FALSE(client_->GetSession("sessions/no-such").ok());
+  auto st = client_->OpenSteps(s->name());
+  ASSERT_TRUE((*st)->MoveBy(std::vector<double>(600, 0.0001)).ok());
+  ASSERT_TRUE((*st)->Finish().ok());
+  ASSERT_TRUE(client_->NearestOfAll(s->name()).ok());
+  auto channel = grpc::CreateChannel(server_->target(),
+                                     grpc::InsecureChannelCredentials());
+  grpc::GenericStub generic(channel);
+  EXPECT_EQ(
+      testing::SendRaw(generic, "/kinetri.v1.KinetriService/NoSuchMethod", {""})
+          .error_code(),
+      grpc::StatusCode::UNIMPLEMENTED);
+  const std::string m = testing::HttpGet(server_->metrics_port(), "/metrics");
+  auto handled = [](const char* code, const char* method, const char* type) {
+    return absl::StrCat("grpc_server_handled_total{grpc_code=\"", code,
+                        "\",grpc_method=\"", method,
+                        "\",grpc_service=\"kinetri.v1.KinetriService\","
+                        "grpc_type=\"",
+                        type, "\"} ");
+  };
+  for (const std::string& line :
+       {handled("OK", "CreateSession", "client_stream") + "1",
+        handled("NOT_FOUND", "GetSession", "unary") + "1",
+        handled("OK", "StreamSteps", "bidi_stream") + "1",
+        handled("OK", "Query", "server_stream") + "1",
+        std::string("grpc_server_started_total{grpc_method=\"Query\","
+                    "grpc_service=\"kinetri.v1.KinetriService\","
+                    "grpc_type=\"server_stream\"} 1"),
+        std::string("grpc_server_handling_seconds_count{grpc_method=\""
+                    "StreamSteps\",grpc_service=\"kinetri.v1.KinetriService"
+                    "\",grpc_type=\"bidi_stream\"} 1")}) {
+    EXPECT_NE(m.find(line + "\n"), std::string::npos) << line << "\n" << m;
+  }
+  EXPECT_NE(m.find("grpc_server_handled_total{grpc_code=\"UNIMPLEMENTED\","
+                   "grpc_method=\"unknown\",grpc_service=\"unknown\","
+                   "grpc_type=\"unknown\"} 1\n"),
+            std::string::npos)
+      << m;
+  EXPECT_EQ(m.find("NoSuchMethod"), std::string::npos);
+  ASSERT_TRUE(client_->DeleteSession(s->name()).ok());
 }
 
 TEST(E2eShutdown, HealthTurnsNotServingWhileDraining) {
