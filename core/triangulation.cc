@@ -965,6 +965,11 @@ std::vector<uint32_t> Triangulation::DetachPartingPoints(
     const std::vector<Vec2>& next) {
   const uint32_t n = size();
   std::vector<uint32_t> reinsert;
+  detach_log_.clear();
+  auto set = [&](uint32_t& slot, uint32_t value) {
+    detach_log_.emplace_back(&slot, slot);
+    slot = value;
+  };
   if (has_duplicates_) {
     std::vector<uint8_t> leave(n, 0);
     bool any = false;
@@ -977,21 +982,28 @@ std::vector<uint32_t> Triangulation::DetachPartingPoints(
         for (uint32_t p = dup_next_[r]; p != kNoVertex;) {
           const uint32_t following = dup_next_[p];
           if (leave[p]) {
-            dup_next_[p] = kNoVertex;
-            rep_[p] = p;
+            set(dup_next_[p], kNoVertex);
+            set(rep_[p], p);
             reinsert.push_back(p);
           } else {
-            dup_next_[last] = p;
+            set(dup_next_[last], p);
             last = p;
           }
           p = following;
         }
-        dup_next_[last] = kNoVertex;
+        set(dup_next_[last], kNoVertex);
       }
       // Detached points that land together re-form a site on insertion.
     }
   }
   return reinsert;
+}
+
+void Triangulation::UndoDetach() {
+  for (auto it = detach_log_.rbegin(); it != detach_log_.rend(); ++it) {
+    *it->first = it->second;
+  }
+  detach_log_.clear();
 }
 
 bool Triangulation::FinishLocalStep(std::vector<Vec2>& next,
@@ -1081,9 +1093,10 @@ bool Triangulation::RegionUpdate(std::vector<Vec2>& next,
   const bool ok = seeds.empty() || region_executor_.Step(
                                        mesh_, pos_, next, seeds, policy, &stats,
                                        &removed, &hints, reason, cancel);
-  // A stopped or failed executor step has left the mesh as it was; points
-  // detached from a coincident site (reinsert) have changed the sites.
-  if (stats.cancelled) *cancelled = reinsert.empty() ? 1 : 2;
+  // A stopped or failed executor step has left the mesh as it was; the
+  // coincident-point chains go back too, so the step changed nothing.
+  if (!ok && !reinsert.empty()) UndoDetach();
+  if (stats.cancelled) *cancelled = 1;
   report->flips += stats.flips;
   report->held_vertices = stats.held;
   report->local_halvings = stats.halvings;
@@ -1095,7 +1108,7 @@ bool Triangulation::RegionUpdate(std::vector<Vec2>& next,
   report->legalize_seconds += stats.legalize_seconds;
   report->held_seconds += stats.held_seconds;
   if (!ok) {
-    if (untouched != nullptr) *untouched = reinsert.empty();
+    if (untouched != nullptr) *untouched = true;
     return false;
   }
   reinsert.insert(reinsert.end(), removed.begin(), removed.end());
@@ -1475,9 +1488,9 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
   // Back to the previous step after an attempt that changed the mesh was
   // stopped: the positions (pos_) are unchanged; the mesh and the
   // coincident-point chains are rebuilt from them (not stoppable: it is
-  // what a stop must leave). The region executor undoes its own changes,
-  // so this happens only after the round executor's later passes or when
-  // points parted from a coincident site.
+  // what a stop must leave). The region executor undoes its own changes
+  // (and the coincident-point chains are put back), so this happens only
+  // after the round executor's later passes.
   auto restore_previous = [&] {
     std::vector<Vec2> by_ext(n);
     for (uint32_t i = 0; i < n; ++i) by_ext[ext_of_int_[i]] = pos_[i];

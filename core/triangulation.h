@@ -271,6 +271,11 @@ class Triangulation {
   // Coincident points whose positions in `next` leave their site: detached
   // from it (they are inserted again at the end of the step).
   std::vector<uint32_t> DetachPartingPoints(const std::vector<Vec2>& next);
+  // What DetachPartingPoints changed (rep_ and dup_next_ entries, as they
+  // were, in order), so that a step stopped afterwards can put the
+  // coincident-point chains back: UndoDetach.
+  std::vector<std::pair<uint32_t*, uint32_t>> detach_log_;
+  void UndoDetach();
   // Moves to `next` (swapped into pos_; `next` keeps the old positions on
   // success, the new ones on failure) and inserts the vertices in
   // `reinsert` (removed from the mesh or detached) at their new positions;
