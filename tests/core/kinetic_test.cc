@@ -486,7 +486,13 @@ TEST(Kinetic, StopAnywhereInTheStepIsUndoneAtOnce) {
     EXPECT_EQ(t->num_sites(), n - 100);
     EXPECT_TRUE(t->Validate().ok());
     EXPECT_EQ(EdgesAsPositions(*t), before_edges);
+    // ThreadSanitizer (which runs this test for the parallel undo) slows
+    // it 5-15x: only the normal and ASan builds hold it to 50 ms.
+#if defined(__SANITIZE_THREAD__)
+    EXPECT_LT(ms, 1000.0);
+#else
     EXPECT_LT(ms, 50.0);
+#endif
   }
   auto r = t->ApplyDisplacements(step);
   ASSERT_TRUE(r.ok()) << r.status();
