@@ -133,6 +133,12 @@ int main(int argc, char** argv) {
       "points) over gRPC (kinetri.v1.KinetriService), with the gRPC health "
       "service, server reflection and Prometheus metrics. Defaults serve on "
       "loopback out of the box.");
+  // From the start: a SIGTERM that comes while the server starts (or as
+  // soon as it has said it listens) drains it like any other, instead of
+  // killing it by default.
+  std::signal(SIGTERM, OnSignal);
+  std::signal(SIGINT, OnSignal);
+  std::signal(SIGHUP, OnHangup);
 
   kinetri::server::ServerLimits limits;
   limits.max_sessions = absl::GetFlag(FLAGS_max_sessions);
@@ -417,9 +423,6 @@ int main(int argc, char** argv) {
               absl::GetFlag(FLAGS_listen).c_str());
   std::fflush(stdout);
 
-  std::signal(SIGTERM, OnSignal);
-  std::signal(SIGINT, OnSignal);
-  std::signal(SIGHUP, OnHangup);
   int ticks = 0;
   while (!g_stop) {
     std::this_thread::sleep_for(std::chrono::milliseconds(50));
