@@ -15,6 +15,7 @@ PACKAGES=(
   libssl-dev openssl
   redis-server gnuplot-nox
   haproxy  # tests/e2e/server_replicas_test.cc: deploy/proxy/haproxy.cfg
+  clang-14 libclang-rt-14-dev  # scripts/fuzz.sh: libFuzzer
 )
 # Node.js (for client/node) comes with the machine image; it is not a Debian
 # package here, so it is checked, not installed.

@@ -7,9 +7,11 @@ bash scripts/build.sh
 ctest --test-dir build --output-on-failure -j "$(nproc)"
 # The suite again under AddressSanitizer + UndefinedBehaviorSanitizer
 # (./build-asan, about 10 minutes on 2 cores), then the concurrency tests
-# under ThreadSanitizer (./build-tsan, about 8 minutes);
-# KINETRI_SKIP_SANITIZERS=1 skips both.
+# under ThreadSanitizer (./build-tsan, about 8 minutes), then libFuzzer over
+# the service's requests for 60 s (./build-fuzz, clang, about 3 minutes);
+# KINETRI_SKIP_SANITIZERS=1 skips all three.
 if [[ "${KINETRI_SKIP_SANITIZERS:-0}" != 1 ]]; then
   bash scripts/test_sanitizers.sh
   bash scripts/test_tsan.sh
+  bash scripts/fuzz.sh
 fi
