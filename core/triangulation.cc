@@ -1602,6 +1602,34 @@ std::vector<std::array<uint32_t, 3>> Triangulation::Triangles() const {
   return out;
 }
 
+void Triangulation::AppendTriangles(
+    uint32_t* slot, size_t max,
+    std::vector<std::array<uint32_t, 3>>* out) const {
+  if (mesh_.empty()) return;
+  const MeshView m = mesh_.view();
+  const uint32_t nt = mesh_.num_triangles();
+  size_t added = 0;
+  uint32_t t = *slot;
+  for (; t < nt && added < max; ++t) {
+    if (m.IsFree(t) || m.IsGhost(t)) continue;
+    out->push_back({SiteId(m.origin[3 * t]), SiteId(m.origin[3 * t + 1]),
+                    SiteId(m.origin[3 * t + 2])});
+    ++added;
+  }
+  *slot = t;
+}
+
+uint64_t Triangulation::CountTriangles(uint32_t lo, uint32_t hi) const {
+  if (mesh_.empty()) return 0;
+  const MeshView m = mesh_.view();
+  hi = std::min(hi, mesh_.num_triangles());
+  uint64_t count = 0;
+  for (uint32_t t = lo; t < hi; ++t) {
+    count += !m.IsFree(t) && !m.IsGhost(t);
+  }
+  return count;
+}
+
 std::vector<std::pair<uint32_t, uint32_t>> Triangulation::Edges() const {
   std::vector<std::pair<uint32_t, uint32_t>> out;
   auto add = [&](uint32_t a, uint32_t b) {

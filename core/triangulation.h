@@ -207,6 +207,15 @@ class Triangulation {
   // Finite Delaunay triangles, counter-clockwise, as external ids (each
   // corner the smallest id of its coincident points). Empty in line mode.
   std::vector<std::array<uint32_t, 3>> Triangles() const;
+  // Triangles() in pieces, for streaming: the triangle slots are
+  // [0, num_triangle_slots()); AppendTriangles appends the triangles of
+  // the slots from *slot on until `max` are appended or the slots run out,
+  // advancing *slot (calls from slot 0 on list Triangles() in order), and
+  // CountTriangles counts those of slots [lo, hi).
+  uint32_t num_triangle_slots() const { return mesh_.num_triangles(); }
+  void AppendTriangles(uint32_t* slot, size_t max,
+                       std::vector<std::array<uint32_t, 3>>* out) const;
+  uint64_t CountTriangles(uint32_t lo, uint32_t hi) const;
 
   // Read-only view for the executors (mesh only).
   TriangulationView view() const;

@@ -1043,53 +1043,77 @@ grpc::Status KinetriServiceImpl::ExportTriangulation(
   if (!tenant.ok()) return ToGrpc(tenant.status());
   auto s = Lookup(req->session(), tenant->name);
   if (!s.ok()) return ToGrpc(s.status());
-  std::vector<core::Vec2> pos;
-  std::vector<std::array<uint32_t, 3>> tris;
-  std::shared_ptr<const PointIdMap> ids;
-  uint64_t step = 0;
-  MemoryBudget::Reservation memory;
-  {
-    const Session::Snapshot snap = (*s)->Read();
-    // The copies below (positions, then about two triangles per point),
-    // reserved before they are made.
-    const uint64_t n = snap.tri->size();
-    if (absl::Status st = budget_->GrowTo(
-            &memory, n * (sizeof(core::Vec2) + 2 * 3 * sizeof(uint32_t)),
-            "ExportTriangulation");
-        !st.ok()) {
-      return ToGrpc(st);
+  // Streamed from the step's snapshot, held to the end (a step meanwhile
+  // builds on a copy, or waits if the budget has no room for one, as it
+  // does for a query): nothing is copied but the chunk being written, and
+  // the call checks for cancellation at least every 1M triangle slots.
+  const Session::Snapshot snap = (*s)->Read();
+  const core::Triangulation& tri = *snap.tri;
+  // A reader that stops reading holds the snapshot: cancelled once no
+  // message has gone out for --stream_idle_timeout_seconds.
+  IdleWatchdog::Registration idle(watchdog_, ctx);
+  constexpr uint32_t kPollSlots = 1u << 20;
+  const uint32_t slots = tri.num_triangle_slots();
+  uint64_t total_triangles = 0;
+  for (uint32_t lo = 0; lo < slots; lo += std::min(kPollSlots, slots - lo)) {
+    if (ctx->IsCancelled()) {
+      return grpc::Status(grpc::StatusCode::CANCELLED, "cancelled");
     }
-    step = snap.step;
-    pos = snap.tri->Positions();
-    tris = snap.tri->Triangles();
-    ids = snap.ids;
+    total_triangles +=
+        tri.CountTriangles(lo, lo + std::min(kPollSlots, slots - lo));
   }
   static const std::vector<uint64_t> kNoIds;
+  const std::vector<uint64_t>& cids =
+      snap.ids != nullptr ? snap.ids->ids() : kNoIds;
+  // At most 100000 points and triangles per message (under 4 MiB).
+  constexpr size_t kMaxPerChunk = 100000;
   const size_t per =
-      req->triangles_per_chunk() ? req->triangles_per_chunk() : 100000;
-  size_t p = 0, t = 0;
+      req->triangles_per_chunk()
+          ? std::min<size_t>(req->triangles_per_chunk(), kMaxPerChunk)
+          : kMaxPerChunk;
+  const size_t num_points = tri.size();
+  size_t p = 0;
+  uint64_t t = 0;
+  uint32_t slot = 0;
+  std::vector<std::array<uint32_t, 3>> tris;
   do {
     if (ctx->IsCancelled()) {
       return grpc::Status(grpc::StatusCode::CANCELLED, "cancelled");
     }
     v1::ExportTriangulationResponse r;
-    r.set_step(step);
+    r.set_step(snap.step);
     r.set_first_point(p);
-    r.set_total_points(pos.size());
-    r.set_total_triangles(tris.size());
-    const size_t pend = std::min(pos.size(), p + per);
-    const std::vector<uint64_t>& cids = ids != nullptr ? ids->ids() : kNoIds;
+    r.set_total_points(num_points);
+    r.set_total_triangles(total_triangles);
+    const size_t pend = std::min(num_points, p + per);
     for (; p < pend; ++p) {
-      r.add_xy(pos[p].x);
-      r.add_xy(pos[p].y);
+      const core::Vec2 xy = tri.Position(static_cast<uint32_t>(p));
+      r.add_xy(xy.x);
+      r.add_xy(xy.y);
       if (!cids.empty()) r.add_point_ids(cids[p]);
     }
-    const size_t tend = std::min(tris.size(), t + per);
-    for (; t < tend; ++t) {
-      for (uint32_t v : tris[t]) r.add_triangles(v);
+    tris.clear();
+    while (tris.size() < per && slot < slots) {
+      // A bounded stretch of slots per poll, also through free runs.
+      const uint32_t before = slot;
+      tri.AppendTriangles(&slot, per - tris.size(), &tris);
+      if (slot == before) break;
+      if (ctx->IsCancelled()) {
+        return grpc::Status(grpc::StatusCode::CANCELLED, "cancelled");
+      }
     }
+    for (const auto& tr : tris) {
+      for (uint32_t v : tr) r.add_triangles(v);
+    }
+    t += tris.size();
     if (!writer->Write(r)) break;
-  } while (p < pos.size() || t < tris.size());
+    idle.Touch();
+  } while (p < num_points || t < total_triangles);
+  if (idle.timed_out()) {
+    return grpc::Status(grpc::StatusCode::CANCELLED,
+                        "the client stopped reading for longer than "
+                        "--stream_idle_timeout_seconds");
+  }
   return grpc::Status::OK;
 }
 
