@@ -1108,7 +1108,7 @@ grpc::Status KinetriServiceImpl::ExportTriangulation(
     t += tris.size();
     if (!writer->Write(r)) break;
     idle.Touch();
-  } while (p < num_points || t < total_triangles);
+  } while (p < num_points || (t < total_triangles && slot < slots));
   if (idle.timed_out()) {
     return grpc::Status(grpc::StatusCode::CANCELLED,
                         "the client stopped reading for longer than "
