@@ -675,7 +675,12 @@ TEST_F(HardeningMemory, ExportStreamsWithoutACopy) {
       peak_after / 1024);
   EXPECT_EQ(mesh->xy.size(), 2 * kPoints);
   EXPECT_GT(mesh->triangles.size(), 3 * (2 * kPoints - 1000));
+  // Under the sanitizers freed chunks stay in quarantine and shadow memory
+  // grows with them (a CI run: +19 MB under ASan): the peak is asserted in
+  // the normal build only.
+#if !defined(__SANITIZE_ADDRESS__) && !defined(__SANITIZE_THREAD__)
   EXPECT_LT(peak_after - peak_before, 16 * 1024) << "kB";
+#endif
 }
 
 // With no room in the budget for a snapshot copy, a step waits for the
