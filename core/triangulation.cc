@@ -10,6 +10,7 @@
 #include <atomic>
 #include <chrono>
 #include <cmath>
+#include <cstdint>
 #include <mutex>
 #include <numeric>
 #include <optional>
@@ -1592,13 +1593,8 @@ uint32_t Triangulation::SiteId(uint32_t v) const {
 
 std::vector<std::array<uint32_t, 3>> Triangulation::Triangles() const {
   std::vector<std::array<uint32_t, 3>> out;
-  if (mesh_.empty()) return out;
-  const MeshView m = mesh_.view();
-  for (uint32_t t = 0; t < mesh_.num_triangles(); ++t) {
-    if (m.IsFree(t) || m.IsGhost(t)) continue;
-    out.push_back({SiteId(m.origin[3 * t]), SiteId(m.origin[3 * t + 1]),
-                   SiteId(m.origin[3 * t + 2])});
-  }
+  uint32_t slot = 0;
+  AppendTriangles(&slot, SIZE_MAX, &out);
   return out;
 }
 
