@@ -8,6 +8,10 @@
 // pipelined), then a radius query around Q points (Kinetri: one Query;
 // Redis: one GEOSEARCH BYRADIUS per point, pipelined). Reports steps/s and
 // p50/p99 latency of update, query and the whole step, and the ratio.
+// With --in_process (the default) the same steps and queries also run on a
+// core::Triangulation in this process, between the server's and Redis's
+// turns: the service's overhead over the library, per step and per query
+// batch.
 //
 // Redis stores positions as 52-bit geohashes on a sphere: the unit square is
 // mapped to a 1-degree lon/lat box at the equator and the radius to metres.
@@ -28,6 +32,7 @@
 #include <cstdio>
 #include <fstream>
 #include <memory>
+#include <optional>
 #include <random>
 #include <set>
 #include <string>
@@ -40,6 +45,8 @@
 #include "bench/resp_client.h"
 #include "client/cpp/kinetri_client.h"
 #include "core/program_flags.h"
+#include "core/queries.h"
+#include "core/triangulation.h"
 #include "tests/e2e/server_process.h"
 
 ABSL_FLAG(int, n, 100000, "points");
@@ -56,6 +63,11 @@ ABSL_FLAG(std::string, server, "",
           "this binary)");
 ABSL_FLAG(std::string, redis, "/usr/bin/redis-server", "redis-server binary");
 ABSL_FLAG(std::string, json, "", "write the results to this JSON file");
+ABSL_FLAG(bool, in_process, true,
+          "also run the same steps and queries on a core::Triangulation in "
+          "this process (same default options, all cores), after the "
+          "server's and untimed for it: what the service adds to a step and "
+          "a query batch; its rows must equal the server's");
 
 namespace {
 
@@ -281,8 +293,22 @@ int main(int argc, char** argv) {
     return 1;
   }
 
-  Series ks, rs;
-  double k_total = 0, r_total = 0;
+  const bool in_process = absl::GetFlag(FLAGS_in_process);
+  std::optional<kinetri::core::Triangulation> local;
+  if (in_process) {
+    std::vector<kinetri::core::Vec2> p(n);
+    for (int i = 0; i < n; ++i) p[i] = {xy[2 * i], xy[2 * i + 1]};
+    auto made = kinetri::core::Triangulation::Create(p);
+    if (!made.ok()) {
+      std::fprintf(stderr, "in-process: %s\n",
+                   made.status().ToString().c_str());
+      return 1;
+    }
+    local.emplace(std::move(*made));
+  }
+  Series ks, rs, ls;
+  double k_total = 0, r_total = 0, l_total = 0;
+  long local_mismatches = 0;
   int failures = 0;
   long boundary = 0, compared = 0;
   std::normal_distribution<double> g(0.0, sigma);
@@ -310,6 +336,44 @@ int main(int argc, char** argv) {
       std::fprintf(stderr, "kinetri: %s\n",
                    (!ack.ok() ? ack.status() : kn.status()).ToString().c_str());
       return 1;
+    }
+    if (local) {
+      // The library alone: the same step and query batch (the options the
+      // server passes for this request: set rows, no distances).
+      std::vector<kinetri::core::Vec2> d(n), qs(nq);
+      for (int i = 0; i < n; ++i) d[i] = {dxy[2 * i], dxy[2 * i + 1]};
+      for (int j = 0; j < nq; ++j) qs[j] = {qxy[2 * j], qxy[2 * j + 1]};
+      t0 = Clock::now();
+      auto rep = local->ApplyDisplacements(
+          kinetri::core::DisplacementBatch::Dense(std::move(d)));
+      const double l_up = Ms(t0);
+      kinetri::core::RowOptions rows;
+      rows.distances = false;
+      rows.batch_queries = static_cast<uint64_t>(nq);
+      t1 = Clock::now();
+      auto ln = kinetri::core::WithinRadius(*local, qs, r, 0, {}, rows);
+      const double l_q = Ms(t1);
+      if (!rep.ok() || !ln.ok()) {
+        std::fprintf(
+            stderr, "in-process: %s\n",
+            (!rep.ok() ? rep.status() : ln.status()).ToString().c_str());
+        return 1;
+      }
+      for (int j = 0; j < nq; ++j) {
+        std::vector<uint32_t> a(kn->ids.begin() + kn->offsets[j],
+                                kn->ids.begin() + kn->offsets[j + 1]);
+        std::vector<uint32_t> b(ln->ids.begin() + ln->offsets[j],
+                                ln->ids.begin() + ln->offsets[j + 1]);
+        std::sort(a.begin(), a.end());
+        std::sort(b.begin(), b.end());
+        if (a != b) ++local_mismatches;
+      }
+      if (s >= 0) {
+        ls.update.push_back(l_up);
+        ls.query.push_back(l_q);
+        ls.step.push_back(l_up + l_q);
+        l_total += l_up + l_q;
+      }
     }
     // Redis: GEOADD every position (pipelined), GEOSEARCH per query point
     // (pipelined in chunks).
@@ -400,6 +464,15 @@ int main(int argc, char** argv) {
   Report("kinetri", ks, k_total / 1000, steps);
   Report("redis", rs, r_total / 1000, steps);
   std::printf("throughput ratio kinetri/redis: %.2f\n", r_total / k_total);
+  if (local) {
+    Report("library", ls, l_total / 1000, steps);
+    std::printf(
+        "service / library (p50): query %.2f, update %.2f, step %.2f; rows "
+        "differing from the server's: %ld\n",
+        Quantile(ks.query, 0.5) / Quantile(ls.query, 0.5),
+        Quantile(ks.update, 0.5) / Quantile(ls.update, 0.5),
+        Quantile(ks.step, 0.5) / Quantile(ls.step, 0.5), local_mismatches);
+  }
   std::printf(
       "cross-check: %ld neighbours compared, %ld boundary "
       "disagreements (within %g r of the circle), %d real\n",
@@ -410,9 +483,12 @@ int main(int argc, char** argv) {
         << ",\"sigma\":" << absl::GetFlag(FLAGS_sigma) << ",\"radius\":" << r
         << ",\"results\":[" << SeriesJson("kinetri", ks, k_total / 1000, steps)
         << "," << SeriesJson("redis", rs, r_total / 1000, steps)
+        << (local ? "," + SeriesJson("library", ls, l_total / 1000, steps)
+                  : std::string())
         << "],\"ratio\":" << r_total / k_total
         << ",\"boundary_disagreements\":" << boundary
-        << ",\"mismatches\":" << failures << "}\n";
+        << ",\"mismatches\":" << failures
+        << ",\"library_row_mismatches\":" << local_mismatches << "}\n";
   }
-  return failures == 0 ? 0 : 1;
+  return failures == 0 && local_mismatches == 0 ? 0 : 1;
 }

@@ -190,12 +190,38 @@ std::vector<uint32_t> OrderByKey(const std::vector<uint32_t>& keys,
   return order;
 }
 
+// Rows of every query by row_fn. `width` > 0 promises that every complete
+// row has exactly that many results (k-NN of a set with more than k
+// points): the answer's size is then known before any row is built, so it
+// is checked against max_total_results and admitted in one call up front,
+// and rows are written straight into the answer. Otherwise rows go to
+// per-block buffers, admitted as they grow, then into the answer.
 template <typename RowFn>
 absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
                                       const std::vector<Query>& queries,
                                       QueryLimits limits, bool distances,
-                                      RowFn&& row_fn) {
+                                      RowFn&& row_fn, size_t width = 0) {
   const size_t nq = queries.size();
+  if (t.num_sites() == 0) width = 0;
+  NeighborLists fixed;
+  if (width > 0) {
+    const uint64_t all = uint64_t{nq} * width;
+    if (limits.max_total_results && all > limits.max_total_results) {
+      return ResultLimitError(limits.max_total_results);
+    }
+    if (limits.admit && all > 0) {
+      const uint64_t step = QueryLimits::kAdmitStep;
+      if (absl::Status s = limits.admit((all + step - 1) / step * step);
+          !s.ok()) {
+        return s;
+      }
+    }
+    fixed.ids.resize(all);
+    if (distances) fixed.distances.resize(all);
+  }
+  // Set when a row of a fixed-width answer came out shorter (never
+  // expected): the query is then answered the general way.
+  std::atomic<bool> short_row{false};
   // Rows are produced in fixed blocks of queries, each block appending to
   // its own buffer (no allocation per row), then copied into the CSR.
   constexpr size_t kBlock = 256;
@@ -216,7 +242,7 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
   std::mutex admit_mu;
   std::atomic<uint64_t> admitted{0};
   absl::Status refused;
-  const bool counted = limits.max_total_results || limits.admit;
+  const bool counted = width == 0 && (limits.max_total_results || limits.admit);
   if (t.num_sites() > 0) {
     const TriangulationView v = t.query_view();
     t.Run([&] {
@@ -287,6 +313,23 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
                 stop.store(true, std::memory_order_relaxed);
                 return;
               }
+              if (width > 0) {
+                if (row.size() != width) {
+                  short_row.store(true, std::memory_order_relaxed);
+                  stop.store(true, std::memory_order_relaxed);
+                  return;
+                }
+                const size_t at = size_t{order[j]} * width;
+                for (size_t c = 0; c < width; ++c) {
+                  fixed.ids[at + c] = row[c].ext;
+                }
+                if (distances) {
+                  for (size_t c = 0; c < width; ++c) {
+                    fixed.distances[at + c] = row[c].dist;
+                  }
+                }
+                continue;
+              }
               const uint64_t kept =
                   counted
                       ? total.fetch_add(row.size(), std::memory_order_relaxed) +
@@ -334,6 +377,18 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
   if (!refused.ok()) return refused;
   if (stop.load() && limits.cancel != nullptr) {
     if (absl::Status s = limits.cancel->Check("query"); !s.ok()) return s;
+  }
+  if (short_row.load()) {
+    // The answer was admitted whole already.
+    limits.admit = nullptr;
+    return RunRows(t, queries, limits, distances, row_fn, 0);
+  }
+  if (width > 0) {
+    fixed.offsets.resize(nq + 1);
+    ParallelFor(0, nq + 1,
+                [&](size_t i) { fixed.offsets[i] = uint64_t{i} * width; });
+    fixed.truncated.assign(nq, 0);
+    return fixed;
   }
   NeighborLists out;
   out.offsets.assign(nq + 1, 0);
@@ -416,7 +471,9 @@ absl::StatusOr<NeighborLists> KNearestImpl(const Triangulation& t,
       [want](const TriangulationView& v, const Query& q, uint32_t root,
              const RowBudget& budget, std::vector<Hit>& out) {
         return KnnRow(v, q, root, want, budget, out);
-      });
+      },
+      // Every row holds k points when the set has more than k.
+      t.size() > want ? want : 0);
 }
 
 // Disks expected to hold at least this many sites are scanned in a cell

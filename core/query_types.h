@@ -63,7 +63,9 @@ struct QueryLimits {
   // (calls come one at a time, with growing counts); a non-OK answer stops
   // the query, which returns it. The server reserves an answer's memory
   // from its budget this way: the reservation grows with the answer
-  // instead of following a guess made before it.
+  // instead of following a guess made before it. An answer whose size is
+  // known before it is built (k-NN of a set with more than k points: k per
+  // query) is admitted whole, in one call, before anything is allocated.
   std::function<absl::Status(uint64_t results)> admit;
   static constexpr uint64_t kAdmitStep = uint64_t{1} << 18;
 };

@@ -170,8 +170,10 @@ class Triangulation {
   // polled while the step runs; when it fires the step stops and returns
   // CANCELLED / DEADLINE_EXCEEDED with the triangulation exactly as before
   // the call (same positions, same Delaunay triangulation, same step
-  // count). Stopping during the scan costs nothing; once flips have begun
-  // the previous triangulation is rebuilt from the unchanged positions.
+  // count). The region executor (the default) undoes what the step did,
+  // in milliseconds, in any phase; the round and device executors, once
+  // flips have begun, rebuild the previous triangulation from the
+  // unchanged positions.
   absl::StatusOr<StepReport> ApplyDisplacements(
       const DisplacementBatch& batch, const CancelToken* cancel = nullptr);
   // An independent copy (same points, ids, mesh, options and step count;

@@ -432,6 +432,19 @@ class QueryEngine {
     size_t block = std::min<size_t>(kFirstBlock, max_block);
     uint64_t total = 0;
     uint64_t granted = 0;  // by q.limits.admit
+    if (knn && view_.num_points > q.k) {
+      // Every row holds k points: the answer is checked and admitted whole
+      // before any block runs (as the host executors do).
+      const uint64_t all = uint64_t{nq} * q.k;
+      if (limit && all > limit) return ResultLimitError(limit);
+      if (q.limits.admit) {
+        const uint64_t step = QueryLimits::kAdmitStep;
+        granted = (all + step - 1) / step * step;
+        if (absl::Status s = q.limits.admit(granted); !s.ok()) return s;
+      }
+      out->ids.reserve(all);
+      out->distances.reserve(all);
+    }
     for (size_t begin = 0; begin < nq;) {
       if (cancel != nullptr) {
         if (absl::Status s = cancel->Check("query"); !s.ok()) return s;
