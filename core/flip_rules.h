@@ -81,16 +81,38 @@ KINETRI_HD inline bool TriangleOk(const MeshView& m, const Vec2* pos,
   return Orient2d(pos[a], pos[b], pos[c]) > 0;
 }
 
+// Every triangle may be read (the unbounded rules).
+struct AnyTriangle {
+  KINETRI_HD bool operator()(uint32_t) const { return true; }
+};
+
+// Reads of the rules below go through may_read(t) (a triangle slot) before
+// they touch a triangle other than the one they start from; a refusal sets
+// *outside and the answer is then meaningless. Executors that fix in
+// regions in parallel pass their region's bounds: the rule then reads
+// only what the region owns, and a refused element goes to a serial pass.
+
 // True iff u and w are joined by an edge. `e` is any half-edge leaving u.
+template <typename MayRead>
 KINETRI_HD inline bool Adjacent(const MeshView& m, uint32_t e, uint32_t w,
+                                const MayRead& may_read, bool* outside,
                                 uint32_t max_degree = 1u << 16) {
   uint32_t x = e;
   for (uint32_t i = 0; i < max_degree; ++i) {
     if (m.Dest(x) == w) return true;
     x = m.twin[Prev(x)];
     if (x == e) return false;
+    if (!may_read(TriangleOf(x))) {
+      *outside = true;
+      return false;
+    }
   }
   return true;
+}
+KINETRI_HD inline bool Adjacent(const MeshView& m, uint32_t e, uint32_t w,
+                                uint32_t max_degree = 1u << 16) {
+  bool outside = false;
+  return Adjacent(m, e, w, AnyTriangle{}, &outside, max_degree);
 }
 
 // True iff the origin of e is a hull vertex (joined to the infinite vertex).
@@ -114,20 +136,36 @@ struct FixProposal {
 // triangles; hull releases keep it (they create one valid triangle) and
 // shrink the hull by one vertex. So (invalid finite triangles, hull size)
 // decreases lexicographically with every flip.
+template <typename MayRead>
 KINETRI_HD inline FixProposal ProposeFixFlip(const MeshView& m, const Vec2* pos,
-                                             uint32_t t) {
+                                             uint32_t t,
+                                             const MayRead& may_read,
+                                             bool* outside) {
   FixProposal out;
+  // May the triangle of half-edge h be read? Else the proposal is refused.
+  auto readable = [&](uint32_t h) {
+    if (may_read(TriangleOf(h))) return true;
+    *outside = true;
+    return false;
+  };
   if (m.IsGhost(t)) {
     // kHullRelease: spoke a->inf with hull p -> a -> q reflex at a.
     const uint32_t e = SpokeOf(m, t);
     if (e == kNoEdge) return out;
     const uint32_t a = m.origin[e];
-    const uint32_t p = SpokePrev(m, e), q = SpokeNext(m, e);
-    const uint32_t pp = m.origin[Prev(m.twin[Prev(m.twin[e])])];
-    const uint32_t qq = m.origin[Prev(m.twin[Next(e)])];
+    const uint32_t te = m.twin[e];
+    if (!readable(te)) return out;
+    const uint32_t p = m.origin[Prev(te)], q = SpokeNext(m, e);
+    const uint32_t tp = m.twin[Prev(te)];
+    if (!readable(tp)) return out;
+    const uint32_t pp = m.origin[Prev(tp)];
+    const uint32_t tn = m.twin[Next(e)];
+    if (!readable(tn)) return out;
+    const uint32_t qq = m.origin[Prev(tn)];
     if (p == q || pp == q || pp == a || qq == a) return out;  // hull <= 3
     if (Orient2d(pos[p], pos[q], pos[a]) <= 0) return out;
-    if (Adjacent(m, Prev(m.twin[e]), q)) return out;  // p-q exists already
+    // p-q exists already?
+    if (Adjacent(m, Prev(te), q, may_read, outside) || *outside) return out;
     out.edge = e;
     out.kind = kHullRelease;
     out.new_u = p;
@@ -136,21 +174,29 @@ KINETRI_HD inline FixProposal ProposeFixFlip(const MeshView& m, const Vec2* pos,
   }
   for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
     const uint32_t f = m.twin[e];
+    if (!readable(f)) return out;
     const uint32_t a = m.origin[e], b = m.origin[f];
     const uint32_t c = m.Apex(e), d = m.Apex(f);
     if (d != kInfiniteVertex) {
       if (c != d && Orient2d(pos[d], pos[c], pos[a]) > 0 &&
-          Orient2d(pos[c], pos[d], pos[b]) > 0 && !Adjacent(m, Prev(e), d)) {
-        out.edge = e;
-        out.kind = kInteriorFlip;
-        out.new_u = c;
-        out.new_w = d;
-        return out;
+          Orient2d(pos[c], pos[d], pos[b]) > 0) {
+        const bool exists = Adjacent(m, Prev(e), d, may_read, outside);
+        if (*outside) return out;
+        if (!exists) {
+          out.edge = e;
+          out.kind = kInteriorFlip;
+          out.new_u = c;
+          out.new_w = d;
+          return out;
+        }
       }
       continue;
     }
     // a->b is a hull edge; c would join the hull between a and b.
-    if (OnHull(m, Prev(e))) continue;
+    const bool on_hull =
+        Adjacent(m, Prev(e), kInfiniteVertex, may_read, outside);
+    if (*outside) return out;
+    if (on_hull) continue;
     if (!TurnOk(pos, a, c, b)) continue;
     out.edge = e;
     out.kind = kHullAbsorb;
@@ -158,6 +204,11 @@ KINETRI_HD inline FixProposal ProposeFixFlip(const MeshView& m, const Vec2* pos,
     return out;
   }
   return out;
+}
+KINETRI_HD inline FixProposal ProposeFixFlip(const MeshView& m, const Vec2* pos,
+                                             uint32_t t) {
+  bool outside = false;
+  return ProposeFixFlip(m, pos, t, AnyTriangle{}, &outside);
 }
 
 // Is the edge of half-edge e not locally Delaunay (with the symbolic

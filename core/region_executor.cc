@@ -53,20 +53,20 @@ bool StarIn(const MeshView& m, uint32_t e0, Bounds b) {
   return false;
 }
 
-// Everything rules::ProposeFixFlip(t) reads and its flip writes lies in b:
-// t, its neighbours, and the stars of t's vertices and of the vertices
-// across t's edges (the Adjacent/OnHull walks, and the footprint).
-bool FixReadsIn(const MeshView& m, uint32_t t, Bounds b) {
+// The neighbours of t lie in b.
+bool NeighboursIn(const MeshView& m, uint32_t t, Bounds b) {
   for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
     if (!b.In(TriangleOf(m.twin[e]))) return false;
   }
-  for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
-    if (m.origin[e] != kInfiniteVertex && !StarIn(m, e, b)) return false;
-    const uint32_t h = Prev(m.twin[e]);
-    if (m.origin[h] != kInfiniteVertex && !StarIn(m, h, b)) return false;
-  }
   return true;
 }
+
+// The read predicate of the bounded rules (core/flip_rules.h): a fix
+// proposed inside a region reads only the region's triangles.
+struct InBounds {
+  Bounds b;
+  bool operator()(uint32_t t) const { return b.In(t); }
+};
 
 void CountFix(uint32_t kind, FlipCounts* c) {
   switch (kind) {
@@ -98,12 +98,20 @@ void FixLoop(const MeshView& m, const Vec2* p, Bounds b,
     while (!stack.empty()) {
       const uint32_t t = stack.back();
       stack.pop_back();
-      if (rules::TriangleOk(m, p, t)) continue;
-      if (kBounded && !FixReadsIn(m, t, b)) {
+      // A ghost's validity reads its neighbours (the hull turn).
+      if (kBounded && m.IsGhost(t) && !NeighboursIn(m, t, b)) {
         deferred.push_back(t);
         continue;
       }
-      const rules::FixProposal prop = rules::ProposeFixFlip(m, p, t);
+      if (rules::TriangleOk(m, p, t)) continue;
+      bool outside = false;
+      const rules::FixProposal prop =
+          kBounded ? rules::ProposeFixFlip(m, p, t, InBounds{b}, &outside)
+                   : rules::ProposeFixFlip(m, p, t);
+      if (outside) {
+        deferred.push_back(t);
+        continue;
+      }
       if (prop.edge == kNoEdge) {
         waiting.push_back(t);
         continue;

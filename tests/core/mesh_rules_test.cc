@@ -216,6 +216,104 @@ TEST(FlipRules, NonConvexQuadHasNoInteriorFlip) {
   EXPECT_GT(stuck, 0);
 }
 
+// The bounded fix rule (what a region executor runs in parallel) asks
+// before it reads any triangle but its own, stops at the first refusal, and
+// proposes what the unbounded rule proposes whenever nothing was refused.
+TEST(FlipRules, BoundedProposalAsksBeforeReadingAndAgrees) {
+  auto pts = testing::UniformPoints(3000, 41);
+  Mesh mesh = BuildDelaunayWithCgal(pts, AllSites(pts.size()));
+  const MeshView m = mesh.view();
+  std::mt19937_64 rng(42);
+  std::normal_distribution<double> g(0.0, 0.4 / std::sqrt(3000.0));
+  std::vector<Vec2> moved = pts;
+  for (Vec2& p : moved) p = {p.x + g(rng), p.y + g(rng)};
+  const uint32_t nt = mesh.num_triangles();
+  int invalid = 0, ghosts = 0, flips = 0, refused_windows = 0,
+      agreed_windows = 0;
+  for (uint32_t t = 0; t < nt; ++t) {
+    if (rules::TriangleOk(m, moved.data(), t)) continue;
+    ++invalid;
+    ghosts += m.IsGhost(t) ? 1 : 0;
+    const rules::FixProposal want = rules::ProposeFixFlip(m, moved.data(), t);
+    flips += want.edge != kNoEdge ? 1 : 0;
+    // Everything allowed: the same proposal; record what it asks for.
+    std::vector<uint32_t> asked;
+    bool outside = false;
+    auto record = [&](uint32_t x) {
+      asked.push_back(x);
+      return true;
+    };
+    rules::FixProposal got =
+        rules::ProposeFixFlip(m, moved.data(), t, record, &outside);
+    EXPECT_FALSE(outside);
+    EXPECT_EQ(got.edge, want.edge) << t;
+    EXPECT_EQ(got.kind, want.kind) << t;
+    std::sort(asked.begin(), asked.end());
+    asked.erase(std::unique(asked.begin(), asked.end()), asked.end());
+    // It reads nothing it did not ask for: on a copy of the mesh where
+    // every other triangle is garbage (edges that lead back to themselves
+    // from a poison vertex: 0, the infinite vertex, or one of t's own, which
+    // the rules compare against), asking only for what it asked, it agrees.
+    std::vector<uint8_t> keep(nt, 0);
+    keep[t] = 1;
+    for (uint32_t x : asked) keep[x] = 1;
+    for (uint32_t poison : {0u, kInfiniteVertex, m.origin[3 * t],
+                            m.origin[3 * t + 1], m.origin[3 * t + 2]}) {
+      std::vector<uint32_t> origin(m.origin, m.origin + m.num_half_edges);
+      std::vector<uint32_t> twin(m.twin, m.twin + m.num_half_edges);
+      for (uint32_t x = 0; x < nt; ++x) {
+        if (keep[x]) continue;
+        for (uint32_t e = 3 * x; e < 3 * x + 3; ++e) {
+          origin[e] = poison;
+          twin[e] = e;
+        }
+      }
+      MeshView poisoned = m;
+      poisoned.origin = origin.data();
+      poisoned.twin = twin.data();
+      bool out = false;
+      const rules::FixProposal p = rules::ProposeFixFlip(
+          poisoned, moved.data(), t, [&](uint32_t y) { return keep[y] != 0; },
+          &out);
+      EXPECT_FALSE(out);
+      EXPECT_EQ(p.edge, want.edge) << t << " poison " << poison;
+      EXPECT_EQ(p.new_u, want.new_u) << t;
+      EXPECT_EQ(p.new_w, want.new_w) << t;
+    }
+    // Refusing any one triangle it asked for is reported.
+    for (uint32_t x : asked) {
+      if (x == t) continue;
+      bool out = false;
+      rules::ProposeFixFlip(
+          m, moved.data(), t, [&](uint32_t y) { return y != x; }, &out);
+      EXPECT_TRUE(out) << "triangle " << t << " read " << x
+                       << " after it was refused";
+    }
+    // Windows of slots around t, as regions are: no refusal, same answer.
+    for (uint32_t w : {16u, 64u, 256u}) {
+      const uint32_t lo = t > w ? t - w : 0, hi = t + w;
+      bool out = false;
+      got = rules::ProposeFixFlip(
+          m, moved.data(), t, [&](uint32_t y) { return y >= lo && y < hi; },
+          &out);
+      if (out) {
+        ++refused_windows;
+        continue;
+      }
+      ++agreed_windows;
+      EXPECT_EQ(got.edge, want.edge) << t;
+      EXPECT_EQ(got.new_u, want.new_u) << t;
+      EXPECT_EQ(got.new_w, want.new_w) << t;
+    }
+  }
+  // Not vacuous: hull and interior cases, proposals, refusals, agreement.
+  EXPECT_GT(invalid, 100);
+  EXPECT_GT(ghosts, 0);
+  EXPECT_GT(flips, 50);
+  EXPECT_GT(refused_windows, 10);
+  EXPECT_GT(agreed_windows, 100);
+}
+
 // What ScanTriangles must find: the rules, one element at a time.
 void ExpectScanMatchesRules(const Mesh& mesh, const std::vector<Vec2>& pos) {
   const MeshView m = mesh.view();
