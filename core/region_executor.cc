@@ -86,8 +86,10 @@ void CountFix(uint32_t kind, FlipCounts* c) {
 
 // Fixing with a LIFO stack inside b. Invalid triangles with no repairing
 // flip wait until a flip has happened since they were looked at; what is
-// left in `waiting` at the end is stuck (for this region). `mesh` non-null:
-// vertex_edge is kept up to date (serial use only).
+// left in `waiting` at the end is stuck (for this region). Bounded, the
+// fix rule reads only b, and a flip runs only when it writes only b.
+// `mesh` non-null: vertex_edge is kept up to date (bounded: only by flips
+// whose four vertices have their whole stars in b).
 template <bool kBounded>
 void FixLoop(const MeshView& m, const Vec2* p, Bounds b,
              std::vector<uint32_t>& stack, std::vector<uint32_t>& waiting,
@@ -121,6 +123,18 @@ void FixLoop(const MeshView& m, const Vec2* p, Bounds b,
       if (kBounded) {
         bool inside = true;
         for (uint32_t x : fp) inside = inside && b.In(x);
+        // With vertex-edge updates (mesh non-null), the flip writes the
+        // vertex_edge of its four vertices: their whole stars lie in b, so
+        // no other region writes them.
+        if (inside && mesh != nullptr) {
+          const uint32_t e = prop.edge, f = m.twin[e];
+          for (uint32_t h : {e, f, Prev(e), Prev(f)}) {
+            if (m.origin[h] != kInfiniteVertex && !StarIn(m, h, b)) {
+              inside = false;
+              break;
+            }
+          }
+        }
         if (!inside) {
           deferred.push_back(t);
           continue;
