@@ -668,7 +668,15 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
   held_log_.clear();
   removals_.clear();
   saved_.clear();
-  cur_ = to;
+  // cur_ = to, by all threads (16 bytes per point).
+  cur_.resize(n);
+  ParallelFor(
+      0, (size_t{n} + 65535) / 65536,
+      [&](size_t c) {
+        const size_t lo = c * 65536, hi = std::min<size_t>(n, lo + 65536);
+        std::copy(to.begin() + lo, to.begin() + hi, cur_.begin() + lo);
+      },
+      1);
   held_.assign(n, 0);
   held_list_.clear();
   held_edge_.clear();

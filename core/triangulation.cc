@@ -1044,13 +1044,20 @@ bool Triangulation::RegionUpdate(std::vector<Vec2>& next,
   std::vector<uint32_t> reinsert = DetachPartingPoints(next);
   const auto& ve = mesh_.vertex_edge();
   // The moved sites in the mesh (hidden coincident points move with their
-  // site's representative); in parallel, one pass.
+  // site's representative); in parallel, one pass. Without coincident
+  // points every point is a site and a vertex of the (planar) mesh: they
+  // are the moved points.
   auto moves = [&](uint32_t i) {
     return rep_[i] == i && ve[i] != kNoEdge && next[i] != pos_[i];
   };
-  std::vector<uint32_t> moved = FilterIndices(
-      moved_points.size(), [&](size_t k) { return moves(moved_points[k]); });
-  for (uint32_t& k : moved) k = moved_points[k];
+  std::vector<uint32_t> moved;
+  if (has_duplicates_) {
+    moved = FilterIndices(moved_points.size(),
+                          [&](size_t k) { return moves(moved_points[k]); });
+    for (uint32_t& k : moved) k = moved_points[k];
+  } else {
+    moved = moved_points;
+  }
   // Vertex tolerances: look only around the moved vertices that leave
   // theirs, while few do.
   const RegionStepPolicy& policy = options_.region;
@@ -1386,6 +1393,7 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
     // Parallel, in internal order; the first bad entry (by index) is
     // reported, as a sequential scan would.
     std::atomic<uint64_t> first_bad{UINT64_MAX};
+    moved_flag_.resize(n);
     Run([&] {
       ParallelFor(0, n, [&](size_t in) {
         // The batch is in id order, the loop in spatial order: prefetch
@@ -1395,6 +1403,7 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
         const uint32_t ext = ext_of_int_[in];
         const Vec2 p = new_position(ext, static_cast<uint32_t>(in));
         next[in] = p;
+        moved_flag_[in] = p != pos_[in] ? 1 : 0;
         const Vec2& v = batch.values[ext];
         if (!(std::isfinite(v.x) && std::isfinite(v.y) && InExactDomain(p.x) &&
               InExactDomain(p.y))) {
@@ -1434,14 +1443,19 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
     for (uint32_t ext : batch.remove) {
       const uint32_t in = int_of_ext_[ext];
       next[in] = pos_[in];
+      moved_flag_[in] = 0;
     }
   }
 
   StepReport report;
   std::vector<uint32_t> moved;
   if (!no_moves) {
+    // Dense batches flagged their moved points as they computed them (a
+    // byte per point to read, not two positions).
     Run([&] {
-      moved = FilterIndices(n, [&](size_t i) { return next[i] != pos_[i]; });
+      moved = dense ? FilterIndices(n, [&](size_t i) { return moved_flag_[i]; })
+                    : FilterIndices(
+                          n, [&](size_t i) { return next[i] != pos_[i]; });
     });
   }
   report.moved_points = static_cast<uint32_t>(moved.size());

@@ -352,6 +352,8 @@ class Triangulation {
   std::vector<uint32_t> rep_;       // site representative, internal id
   std::vector<uint32_t> dup_next_;  // next point of the same site
   bool has_duplicates_ = false;
+  // Per point: moved by the dense batch being applied (scratch).
+  std::vector<uint8_t> moved_flag_;
   std::vector<uint32_t> sites_;  // representatives, ascending
 
   Mesh mesh_;                        // empty in line mode
