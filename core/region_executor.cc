@@ -33,12 +33,7 @@ double SecondsSince(std::chrono::steady_clock::time_point t0) {
       .count();
 }
 
-// A contiguous range of triangle slots; kAll admits every slot.
-struct Bounds {
-  uint32_t lo = 0;
-  uint32_t hi = 0xFFFFFFFFu;
-  bool In(uint32_t t) const { return t - lo < hi - lo; }
-};
+using Bounds = RegionSlots;
 
 // Every triangle around the origin of e0 lies in b (e0's triangle does).
 // Reads only slots of triangles already known to lie in b.
@@ -303,13 +298,47 @@ void RegionExecutor::Hold(uint32_t v, uint32_t edge) {
 
 void RegionExecutor::HoldCulprits(const Mesh& mesh,
                                   std::vector<uint32_t> queue) {
-  const MeshView m = mesh.view();
+  std::vector<std::pair<uint32_t, uint32_t>> holds;
+  HoldCulpritsIn<false>(mesh.view(), Bounds{}, queue, nullptr, &holds);
+  for (const auto& [v, e] : holds) {
+    held_list_.push_back(v);
+    held_edge_.push_back(e);
+  }
+}
+
+// Bounded (a region in parallel): it reads only triangles of b, holds only
+// vertices whose star lies in b and off the hull (no other region reads or
+// writes their position or held_ flag), and leaves the rest in *deferred
+// for the serial pass. The positions of vertices it does not own are not
+// written by anyone while regions run.
+template <bool kBounded>
+void RegionExecutor::HoldCulpritsIn(
+    const MeshView& m, RegionSlots b, std::vector<uint32_t>& queue,
+    std::vector<uint32_t>* deferred,
+    std::vector<std::pair<uint32_t, uint32_t>>* holds) {
   const Vec2* p = cur_.data();
+  const std::vector<Vec2>& from = *from_;
   std::vector<uint32_t> around;
+  std::vector<uint32_t> rings[3];
+  auto moving = [&](uint32_t u) {
+    return u < held_.size() && !held_[u] && cur_[u] != from[u];
+  };
   for (size_t i = 0; i < queue.size(); ++i) {
     const uint32_t t = queue[i];
+    if (kBounded && m.IsGhost(t) && !NeighboursIn(m, t, b)) {
+      deferred->push_back(t);
+      continue;
+    }
     if (rules::TriangleOk(m, p, t)) continue;
-    if (rules::ProposeFixFlip(m, p, t).edge != kNoEdge) continue;
+    bool outside = false;
+    const rules::FixProposal prop =
+        kBounded ? rules::ProposeFixFlip(m, p, t, InBounds{b}, &outside)
+                 : rules::ProposeFixFlip(m, p, t);
+    if (outside) {
+      deferred->push_back(t);
+      continue;
+    }
+    if (prop.edge != kNoEdge) continue;
     // The vertices TriangleOk(t) reads, each with a half-edge leaving it
     // (vertex_edge may be stale while fixing).
     uint32_t cand[3], edge[3];
@@ -323,6 +352,24 @@ void RegionExecutor::HoldCulprits(const Mesh& mesh,
       for (int k = 0; k < 3; ++k) edge[k] = 3 * t + k;
     }
     for (int k = 0; k < 3; ++k) cand[k] = m.origin[edge[k]];
+    if (kBounded) {
+      // Every vertex it may try or hold: its star in b, off the hull.
+      bool owned = true;
+      for (int k = 0; k < 3 && owned; ++k) {
+        if (!moving(cand[k])) continue;
+        rings[k].clear();
+        if (!StarIn(m, edge[k], b)) {
+          owned = false;
+          break;
+        }
+        AppendStarFrom(m, edge[k], &rings[k]);
+        for (uint32_t x : rings[k]) owned = owned && !m.IsGhost(x);
+      }
+      if (!owned) {
+        deferred->push_back(t);
+        continue;
+      }
+    }
     // Culprit: the moving vertex whose old position alone makes t valid
     // (the one that moved farthest if several do); else all moving ones.
     int best = -1;
@@ -330,13 +377,13 @@ void RegionExecutor::HoldCulprits(const Mesh& mesh,
     bool any_moving = false;
     for (int k = 0; k < 3; ++k) {
       const uint32_t u = cand[k];
-      if (u >= held_.size() || held_[u] || cur_[u] == (*from_)[u]) continue;
+      if (!moving(u)) continue;
       any_moving = true;
       const Vec2 saved = cur_[u];
-      cur_[u] = (*from_)[u];
+      cur_[u] = from[u];
       const bool ok = rules::TriangleOk(m, p, t);
       cur_[u] = saved;
-      const double d = Dist2(saved, (*from_)[u]);
+      const double d = Dist2(saved, from[u]);
       if (ok && d > best_d) {
         best = k;
         best_d = d;
@@ -346,15 +393,57 @@ void RegionExecutor::HoldCulprits(const Mesh& mesh,
     for (int k = 0; k < 3; ++k) {
       const uint32_t u = cand[k];
       if (best >= 0 && k != best) continue;
-      if (u >= held_.size() || held_[u] || cur_[u] == (*from_)[u]) continue;
-      Hold(u, edge[k]);
+      if (!moving(u)) continue;
+      held_[u] = 1;
+      cur_[u] = from[u];
+      holds->emplace_back(u, edge[k]);
       around.clear();
-      AppendStarAndHullRingFrom(m, edge[k], &around);
+      if (kBounded) {
+        around = rings[k];
+      } else {
+        AppendStarAndHullRingFrom(m, edge[k], &around);
+      }
       for (uint32_t x : around) {
         if (!rules::TriangleOk(m, p, x)) queue.push_back(x);
       }
     }
   }
+}
+
+// Hold-back of the culprits of `queue` (triangles no flip repairs): each
+// region in parallel, then serially what crossed a region boundary.
+void RegionExecutor::HoldCulpritsInRegions(const Mesh& mesh,
+                                           const std::vector<uint32_t>& queue,
+                                           uint32_t rt) {
+  const MeshView m = mesh.view();
+  const uint32_t nt = mesh.num_triangles();
+  for (Region& g : regions_) {
+    g.stack.clear();
+    g.deferred.clear();
+    g.holds.clear();
+  }
+  for (uint32_t t : queue) regions_[t / rt].stack.push_back(t);
+  tbb::parallel_for(
+      tbb::blocked_range<size_t>(0, regions_.size(), 1),
+      [&](const tbb::blocked_range<size_t>& range) {
+        for (size_t r = range.begin(); r != range.end(); ++r) {
+          Region& g = regions_[r];
+          if (g.stack.empty()) continue;
+          const Bounds b{static_cast<uint32_t>(r * rt),
+                         static_cast<uint32_t>(
+                             std::min<size_t>(nt, (r + 1) * size_t{rt}))};
+          HoldCulpritsIn<true>(m, b, g.stack, &g.deferred, &g.holds);
+        }
+      });
+  std::vector<uint32_t> rest;
+  for (Region& g : regions_) {
+    for (const auto& [v, e] : g.holds) {
+      held_list_.push_back(v);
+      held_edge_.push_back(e);
+    }
+    rest.insert(rest.end(), g.deferred.begin(), g.deferred.end());
+  }
+  HoldCulprits(mesh, std::move(rest));
 }
 
 bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
@@ -762,7 +851,7 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
       stats->scan_seconds += SecondsSince(t0);
       return false;
     }
-    HoldCulprits(mesh, std::move(queue));
+    HoldCulpritsInRegions(mesh, queue, rt);
     std::vector<uint32_t> around;
     for (uint32_t v : held_list_) AppendStarAndHullRing(mesh, v, &around);
     std::sort(around.begin(), around.end());

@@ -94,6 +94,14 @@ struct RegionStepStats {
   bool cancelled = false;
 };
 
+// A contiguous range of triangle slots (a region); the default admits
+// every slot.
+struct RegionSlots {
+  uint32_t lo = 0;
+  uint32_t hi = 0xFFFFFFFFu;
+  bool In(uint32_t t) const { return t - lo < hi - lo; }
+};
+
 class RegionExecutor {
  public:
   // Moves the vertices in `moved` (finite mesh vertices, ascending) from
@@ -149,6 +157,8 @@ class RegionExecutor {
     std::vector<uint32_t> marked;  // changed triangles (legalizing)
     // (vertex, half-edge leaving it) of the changed triangles.
     std::vector<std::pair<uint32_t, uint32_t>> owners;
+    // (vertex, half-edge leaving it) held back by the region.
+    std::vector<std::pair<uint32_t, uint32_t>> holds;
     FlipCounts counts;
     void ClearWork();
   };
@@ -156,6 +166,13 @@ class RegionExecutor {
                 const RegionStepPolicy& policy, RegionStepStats* stats,
                 std::string* reason);
   void HoldCulprits(const Mesh& mesh, std::vector<uint32_t> suspects);
+  template <bool kBounded>
+  void HoldCulpritsIn(const MeshView& m, RegionSlots b,
+                      std::vector<uint32_t>& queue,
+                      std::vector<uint32_t>* deferred,
+                      std::vector<std::pair<uint32_t, uint32_t>>* holds);
+  void HoldCulpritsInRegions(const Mesh& mesh,
+                             const std::vector<uint32_t>& queue, uint32_t rt);
   // Holds v at its old position; `edge` leaves v (for its star).
   void Hold(uint32_t v, uint32_t edge);
   // Moves held vertex v (serially) towards `target`, bisecting its motion
