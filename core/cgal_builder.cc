@@ -28,23 +28,17 @@ Mesh BuildDelaunayWithCgal(absl::Span<const Vec2> positions,
     if (cancelled != nullptr) *cancelled = true;
     return true;
   };
-  std::vector<std::pair<CgalPoint, uint32_t>> input;
-  input.reserve(sites.size());
-  for (uint32_t s : sites) {
-    input.emplace_back(CgalPoint(positions[s].x, positions[s].y), s);
-  }
+  // One at a time, each located from the face of the one before: the sites
+  // come in spatial order (internal ids follow a Hilbert curve), so CGAL's
+  // own spatial sort of a range insertion would sort them again.
   Delaunay dt;
-  if (cancel == nullptr) {
-    dt.insert(input.begin(), input.end());
-  } else {
-    // In batches (CGAL sorts each spatially; the sites come in spatial
-    // order already), with the token polled in between.
-    constexpr size_t kBatch = size_t{1} << 15;
-    for (size_t i = 0; i < input.size(); i += kBatch) {
-      if (stop()) return Mesh();
-      const size_t end = std::min(input.size(), i + kBatch);
-      dt.insert(input.begin() + i, input.begin() + end);
-    }
+  Delaunay::Face_handle hint;
+  for (size_t i = 0; i < sites.size(); ++i) {
+    if (i % (size_t{1} << 15) == 0 && stop()) return Mesh();
+    const Vec2& p = positions[sites[i]];
+    const Delaunay::Vertex_handle v = dt.insert(CgalPoint(p.x, p.y), hint);
+    v->info() = sites[i];
+    hint = v->face();
   }
   if (stop()) return Mesh();
   if (dt.dimension() < 2) return Mesh();

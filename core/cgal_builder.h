@@ -15,9 +15,11 @@ namespace kinetri::core {
 // must be pairwise distinct). Vertex ids in the returned mesh are the site
 // ids; the mesh has positions.size() vertex slots. Returns an empty mesh when
 // the sites span fewer than two dimensions (fewer than 3, or all collinear).
-// `cancel` (optional) is polled between batches of 32K insertions (sites in
-// spatial order: a few tens of milliseconds each) and of 1M converted
-// faces; when it fires the result is an empty mesh and *cancelled is set.
+// Sites are inserted in the order given, each located from the one before:
+// in spatial order (as the triangulation's internal ids are) that takes
+// linear time; any order is correct. `cancel` (optional) is polled every
+// 32K insertions (a few tens of milliseconds) and 1M converted faces; when
+// it fires the result is an empty mesh and *cancelled is set.
 Mesh BuildDelaunayWithCgal(absl::Span<const Vec2> positions,
                            absl::Span<const uint32_t> sites,
                            const CancelToken* cancel = nullptr,

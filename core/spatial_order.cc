@@ -25,25 +25,29 @@ uint32_t Quantize(double v, double lo, double hi) {
 uint64_t HilbertKey(const Vec2& p, const Vec2& lo, const Vec2& hi) {
   uint32_t x = Quantize(p.x, lo.x, hi.x);
   uint32_t y = Quantize(p.y, lo.y, hi.y);
+  // Level by level from the top bit: the quadrant's two bits, then the
+  // rotation of what is left (ry == 0: complement if rx == 1, then swap),
+  // with masks instead of branches (the quadrants are unpredictable).
   uint64_t d = 0;
-  for (uint32_t s = kSide / 2; s > 0; s /= 2) {
-    const uint32_t rx = (x & s) ? 1 : 0;
-    const uint32_t ry = (y & s) ? 1 : 0;
-    d += static_cast<uint64_t>(s) * s * ((3 * rx) ^ ry);
-    if (ry == 0) {  // rotate the quadrant
-      if (rx == 1) {
-        x = kSide - 1 - x;
-        y = kSide - 1 - y;
-      }
-      std::swap(x, y);
-    }
+  for (int k = kOrder - 1; k >= 0; --k) {
+    const uint32_t rx = (x >> k) & 1u;
+    const uint32_t ry = (y >> k) & 1u;
+    d = (d << 2) | ((3u * rx) ^ ry);
+    const uint32_t flip = (0u - (rx & (ry ^ 1u))) & (kSide - 1);
+    x ^= flip;
+    y ^= flip;
+    const uint32_t swap = (x ^ y) & (0u - (ry ^ 1u));
+    x ^= swap;
+    y ^= swap;
   }
   return d;
 }
 
-std::vector<uint32_t> HilbertOrder(absl::Span<const Vec2> points) {
+std::vector<uint32_t> HilbertOrder(absl::Span<const Vec2> points,
+                                   std::vector<uint64_t>* keys) {
   const size_t n = points.size();
   std::vector<uint32_t> order(n);
+  if (keys != nullptr) keys->clear();
   if (n == 0) return order;
   Vec2 lo = points[0], hi = points[0];
   for (const Vec2& p : points) {
@@ -58,6 +62,10 @@ std::vector<uint32_t> HilbertOrder(absl::Span<const Vec2> points) {
   });
   tbb::parallel_sort(keyed.begin(), keyed.end());
   for (size_t i = 0; i < n; ++i) order[i] = keyed[i].second;
+  if (keys != nullptr) {
+    keys->resize(n);
+    for (size_t i = 0; i < n; ++i) (*keys)[i] = keyed[i].first;
+  }
   return order;
 }
 

@@ -14,8 +14,10 @@ namespace kinetri::core {
 uint64_t HilbertKey(const Vec2& p, const Vec2& lo, const Vec2& hi);
 
 // Point indices sorted along the Hilbert curve of their bounding box (ties
-// by index, so the result is deterministic).
-std::vector<uint32_t> HilbertOrder(absl::Span<const Vec2> points);
+// by index, so the result is deterministic). `keys` (optional): the keys of
+// the sorted points, in that order (equal positions have equal keys).
+std::vector<uint32_t> HilbertOrder(absl::Span<const Vec2> points,
+                                   std::vector<uint64_t>* keys = nullptr);
 
 }  // namespace kinetri::core
 

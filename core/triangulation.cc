@@ -350,30 +350,46 @@ bool Triangulation::Rebuild(const std::vector<Vec2>& positions_by_ext,
   // Built aside and swapped in at the end, so that a cancelled rebuild
   // leaves the previous triangulation as it was.
   const uint32_t n = static_cast<uint32_t>(positions_by_ext.size());
-  std::vector<uint32_t> ext_of_int = HilbertOrder(positions_by_ext);
+  std::vector<uint64_t> keys;  // Hilbert keys, in internal order
+  std::vector<uint32_t> ext_of_int = HilbertOrder(positions_by_ext, &keys);
   std::vector<uint32_t> int_of_ext(n, 0);
   std::vector<Vec2> pos(n);
   for (uint32_t i = 0; i < n; ++i) {
     int_of_ext[ext_of_int[i]] = i;
     pos[i] = positions_by_ext[ext_of_int[i]];
   }
-  // Group coincident points: lexicographic sort with id as tie-break.
-  std::vector<uint32_t> by_pos(n);
-  std::iota(by_pos.begin(), by_pos.end(), 0u);
-  tbb::parallel_sort(by_pos.begin(), by_pos.end(), [&](uint32_t a, uint32_t b) {
-    if (pos[a] != pos[b]) return LexLess(pos[a], pos[b]);
-    return a < b;
-  });
+  // Group coincident points (each group's representative is its smallest
+  // id, its chain in increasing id). Equal positions have equal Hilbert
+  // keys, so every group lies in one run of equal keys of the internal
+  // order: only runs longer than one point (rare) are sorted, by position
+  // with id as tie-break.
   std::vector<uint32_t> rep(n, kNoVertex), dup_next(n, kNoVertex);
   bool has_duplicates = false;
+  std::vector<uint32_t> run;
   for (uint32_t k = 0; k < n;) {
     uint32_t j = k + 1;
-    while (j < n && pos[by_pos[j]] == pos[by_pos[k]]) ++j;
-    for (uint32_t m = k; m < j; ++m) {
-      rep[by_pos[m]] = by_pos[k];
-      if (m + 1 < j) dup_next[by_pos[m]] = by_pos[m + 1];
+    while (j < n && keys[j] == keys[k]) ++j;
+    if (j - k == 1) {
+      rep[k] = k;
+      k = j;
+      continue;
     }
-    if (j - k > 1) has_duplicates = true;
+    run.resize(j - k);
+    std::iota(run.begin(), run.end(), k);
+    std::sort(run.begin(), run.end(), [&](uint32_t a, uint32_t b) {
+      if (pos[a] != pos[b]) return LexLess(pos[a], pos[b]);
+      return a < b;
+    });
+    for (size_t g = 0; g < run.size();) {
+      size_t h = g + 1;
+      while (h < run.size() && pos[run[h]] == pos[run[g]]) ++h;
+      for (size_t m = g; m < h; ++m) {
+        rep[run[m]] = run[g];
+        if (m + 1 < h) dup_next[run[m]] = run[m + 1];
+      }
+      if (h - g > 1) has_duplicates = true;
+      g = h;
+    }
     k = j;
   }
   std::vector<uint32_t> sites;

@@ -18,6 +18,7 @@
 #include "core/mesh.h"
 #include "core/mesh_scan.h"
 #include "core/region_executor.h"
+#include "core/spatial_order.h"
 #include "core/vertex_ops.h"
 #include "tests/core/test_util.h"
 
@@ -220,8 +221,13 @@ TEST(FlipRules, NonConvexQuadHasNoInteriorFlip) {
 // before it reads any triangle but its own, stops at the first refusal, and
 // proposes what the unbounded rule proposes whenever nothing was refused.
 TEST(FlipRules, BoundedProposalAsksBeforeReadingAndAgrees) {
-  auto pts = testing::UniformPoints(3000, 41);
+  // Numbered as a triangulation numbers them: points along a Hilbert
+  // curve, triangles by vertex (so that slot windows are regions).
+  const auto raw = testing::UniformPoints(3000, 41);
+  std::vector<Vec2> pts;
+  for (uint32_t i : HilbertOrder(raw)) pts.push_back(raw[i]);
   Mesh mesh = BuildDelaunayWithCgal(pts, AllSites(pts.size()));
+  mesh.SortTrianglesByVertex();
   const MeshView m = mesh.view();
   std::mt19937_64 rng(42);
   std::normal_distribution<double> g(0.0, 0.4 / std::sqrt(3000.0));
