@@ -35,6 +35,9 @@ double SecondsSince(std::chrono::steady_clock::time_point t0) {
 
 using Bounds = RegionSlots;
 
+// Triangles sampled before a dense scan to predict a rebuild.
+constexpr uint32_t kRebuildSamples = 2048;
+
 // Every triangle around the origin of e0 lies in b (e0's triangle does).
 // Reads only slots of triangles already known to lie in b.
 bool StarIn(const MeshView& m, uint32_t e0, Bounds b) {
@@ -787,6 +790,33 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
 
   // 1. Scan: invalid triangles and illegal edges for `to`.
   const bool dense = moved.size() > policy.sparse_fraction * n;
+  const double rebuild_cost =
+      policy.rebuild_fixed_cost + policy.rebuild_point_cost * double(n);
+  if (dense && policy.held_vertex_cost > 0 && nt >= 4 * kRebuildSamples) {
+    // Large motion: a sample of the triangles (evenly spaced slots, the
+    // same for any thread count) that clearly predicts a rebuild saves the
+    // scan the rebuild would follow.
+    const Vec2* p = cur_.data();
+    uint32_t hopeless = 0;
+    for (uint32_t i = 0; i < kRebuildSamples; ++i) {
+      const uint32_t t =
+          static_cast<uint32_t>(uint64_t{i} * nt / kRebuildSamples);
+      if (!rules::TriangleOk(m, p, t) &&
+          rules::ProposeFixFlip(m, p, t).edge == kNoEdge) {
+        ++hopeless;
+      }
+    }
+    const double expected = double(hopeless) * nt / kRebuildSamples;
+    if (policy.held_vertex_cost * expected > 2.0 * rebuild_cost) {
+      *reason = absl::StrCat(
+          "about ", static_cast<uint64_t>(expected),
+          " triangles cannot be repaired by flips (",
+          static_cast<int>(100.0 * hopeless / kRebuildSamples),
+          "% of a sample of ", kRebuildSamples, "): rebuilding is cheaper");
+      stats->scan_seconds += SecondsSince(t0);
+      return false;
+    }
+  }
   if (dense) {
     const Vec2* p = cur_.data();
     for_each_region([&](size_t r, uint32_t lo, uint32_t hi) {
@@ -841,8 +871,6 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
       if (hopeless[i]) queue.push_back(all_invalid[i]);
     }
     const double local_cost = policy.held_vertex_cost * double(queue.size());
-    const double rebuild_cost =
-        policy.rebuild_fixed_cost + policy.rebuild_point_cost * double(n);
     if (policy.held_vertex_cost > 0 && local_cost > rebuild_cost) {
       *reason = absl::StrCat(
           queue.size(), " triangles cannot be repaired by flips (",

@@ -617,6 +617,30 @@ TEST(Kinetic, CancelledJoinRebuildLeavesThePreviousStep) {
       << r.fallback_reason;
 }
 
+// Motion of a mean spacing and more: a sample of the triangles predicts the
+// rebuild before the dense scan (region executor), and the result is exact.
+TEST(Kinetic, LargeMotionIsRebuiltFromASample) {
+  const size_t n = 40000;
+  const double spacing = 1.0 / std::sqrt(double(n));
+  auto t = Triangulation::Create(testing::UniformPoints(n, 141),
+                                 testing::ExecutorOptions());
+  ASSERT_TRUE(t.ok());
+  std::mt19937_64 rng(142);
+  const PathTally tally =
+      RunSequence(*t, 3, [&](int) { return Brownian(n, 1.5 * spacing, rng); });
+  EXPECT_EQ(tally.rebuilt, 3) << tally.reasons;
+#if !defined(KINETRI_TEST_FILTER)  // there, every step scans sparsely
+  if (testing::kRegionExecutor) {
+    EXPECT_NE(tally.reasons.find("of a sample of 2048"), std::string::npos)
+        << tally.reasons;
+  }
+#endif
+  // Small motion is not rebuilt by the sample.
+  const PathTally small =
+      RunSequence(*t, 2, [&](int) { return Brownian(n, 0.1 * spacing, rng); });
+  EXPECT_EQ(small.rebuilt, 0) << small.reasons;
+}
+
 // Regression (issue 13): two points that move onto the same empty position in
 // one step made re-insertion fail and forced a full rebuild; either move
 // alone was local.
