@@ -230,12 +230,14 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
   // separate arrays (4 bytes per result for set rows, not a 16-byte Hit).
   std::vector<std::vector<uint32_t>> block_ids(blocks);
   std::vector<std::vector<double>> block_dist(distances ? blocks : 0);
-  std::vector<uint64_t> row_size(nq, 0);
-  std::vector<uint8_t> truncated(nq, 0);
+  // (The per-row bookkeeping of the general way; none for fixed widths.)
+  const size_t rows_kept = width > 0 ? 0 : nq;
+  std::vector<uint64_t> row_size(rows_kept, 0);
+  std::vector<uint8_t> truncated(rows_kept, 0);
   // Slot of each request in processing order, and where the row of each
   // slot starts in its block's buffer (block = slot / kBlock).
-  std::vector<uint32_t> slot_of(nq, 0);
-  std::vector<uint64_t> row_start(nq, 0);
+  std::vector<uint32_t> slot_of(rows_kept, 0);
+  std::vector<uint64_t> row_start(rows_kept, 0);
   std::atomic<uint64_t> total{0};
   std::atomic<bool> stop{false}, exceeded{false};
   // limits.admit, one call at a time: what it granted, and its refusal.
@@ -271,8 +273,8 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
         sorted[j] = queries[order[j]];
         sorted_start[j] = start[order[j]];
       });
-      std::vector<uint64_t> sorted_size(nq, 0);
-      std::vector<uint8_t> sorted_truncated(nq, 0);
+      std::vector<uint64_t> sorted_size(rows_kept, 0);
+      std::vector<uint8_t> sorted_truncated(rows_kept, 0);
       ParallelFor(
           0, blocks,
           [&](size_t b) {
@@ -365,7 +367,7 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
             }
           },
           1);
-      ParallelFor(0, nq, [&](size_t j) {
+      ParallelFor(0, rows_kept, [&](size_t j) {
         const uint32_t i = order[j];
         slot_of[i] = static_cast<uint32_t>(j);
         row_size[i] = sorted_size[j];

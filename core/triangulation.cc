@@ -1066,14 +1066,14 @@ bool Triangulation::RegionUpdate(std::vector<Vec2>& next,
   auto moves = [&](uint32_t i) {
     return rep_[i] == i && ve[i] != kNoEdge && next[i] != pos_[i];
   };
-  std::vector<uint32_t> moved;
+  std::vector<uint32_t> moved_sites;
   if (has_duplicates_) {
-    moved = FilterIndices(moved_points.size(),
-                          [&](size_t k) { return moves(moved_points[k]); });
-    for (uint32_t& k : moved) k = moved_points[k];
-  } else {
-    moved = moved_points;
+    moved_sites = FilterIndices(
+        moved_points.size(), [&](size_t k) { return moves(moved_points[k]); });
+    for (uint32_t& k : moved_sites) k = moved_points[k];
   }
+  const std::vector<uint32_t>& moved =
+      has_duplicates_ ? moved_sites : moved_points;
   // Vertex tolerances: look only around the moved vertices that leave
   // theirs, while few do.
   const RegionStepPolicy& policy = options_.region;
