@@ -292,28 +292,30 @@ bool Bisect(const Vec2& from, const RegionStepPolicy& policy, Vec2* goal,
 
 }  // namespace
 
-void RegionExecutor::Hold(uint32_t v, uint32_t edge) {
+void RegionExecutor::Hold(uint32_t v, uint32_t edge,
+                          std::vector<std::pair<uint32_t, uint32_t>>* to) {
   held_[v] = 1;
-  held_list_.push_back(v);
-  held_edge_.push_back(edge);
   cur_[v] = (*from_)[v];
+  if (to != nullptr) {
+    to->emplace_back(v, edge);
+  } else {
+    held_list_.push_back(v);
+    held_edge_.push_back(edge);
+  }
 }
 
 void RegionExecutor::HoldCulprits(const Mesh& mesh,
                                   std::vector<uint32_t> queue) {
-  std::vector<std::pair<uint32_t, uint32_t>> holds;
-  HoldCulpritsIn<false>(mesh.view(), Bounds{}, queue, nullptr, &holds);
-  for (const auto& [v, e] : holds) {
-    held_list_.push_back(v);
-    held_edge_.push_back(e);
-  }
+  HoldCulpritsIn<false>(mesh.view(), Bounds{}, queue, nullptr, nullptr);
 }
 
 // Bounded (a region in parallel): it reads only triangles of b, holds only
 // vertices whose star lies in b and off the hull (no other region reads or
 // writes their position or held_ flag), and leaves the rest in *deferred
-// for the serial pass. The positions of vertices it does not own are not
-// written by anyone while regions run.
+// for the serial pass; the held (vertex, half-edge) pairs go to *holds.
+// Unbounded (serial): straight to the held lists (holds null). The
+// positions of vertices a region does not own are not written by anyone
+// while regions run.
 template <bool kBounded>
 void RegionExecutor::HoldCulpritsIn(
     const MeshView& m, RegionSlots b, std::vector<uint32_t>& queue,
@@ -397,9 +399,7 @@ void RegionExecutor::HoldCulpritsIn(
       const uint32_t u = cand[k];
       if (best >= 0 && k != best) continue;
       if (!moving(u)) continue;
-      held_[u] = 1;
-      cur_[u] = from[u];
-      holds->emplace_back(u, edge[k]);
+      Hold(u, edge[k], holds);
       around.clear();
       if (kBounded) {
         around = rings[k];

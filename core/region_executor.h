@@ -173,8 +173,10 @@ class RegionExecutor {
                       std::vector<std::pair<uint32_t, uint32_t>>* holds);
   void HoldCulpritsInRegions(const Mesh& mesh,
                              const std::vector<uint32_t>& queue, uint32_t rt);
-  // Holds v at its old position; `edge` leaves v (for its star).
-  void Hold(uint32_t v, uint32_t edge);
+  // Holds v at its old position; `edge` leaves v (for its star). The pair
+  // goes to *to (a region's list) if given, else to the held lists.
+  void Hold(uint32_t v, uint32_t edge,
+            std::vector<std::pair<uint32_t, uint32_t>>* to = nullptr);
   // Moves held vertex v (serially) towards `target`, bisecting its motion
   // when stuck; the flips it keeps are appended to *log. False: v stays at
   // its old or last bisected position.
