@@ -20,9 +20,11 @@ using Delaunay = CGAL::Delaunay_triangulation_2<Kernel, Tds>;
 using CgalPoint = Kernel::Point_2;
 }  // namespace
 
-Mesh BuildDelaunayWithCgal(absl::Span<const Vec2> positions,
-                           absl::Span<const uint32_t> sites,
-                           const CancelToken* cancel, bool* cancelled) {
+bool TriangulateWithCgal(absl::Span<const Vec2> positions,
+                         absl::Span<const uint32_t> sites,
+                         const CancelToken* cancel, bool* cancelled,
+                         std::vector<uint32_t>* origin_out,
+                         std::vector<uint32_t>* twin_out) {
   auto stop = [&] {
     if (cancel == nullptr || !cancel->Cancelled()) return false;
     if (cancelled != nullptr) *cancelled = true;
@@ -34,14 +36,14 @@ Mesh BuildDelaunayWithCgal(absl::Span<const Vec2> positions,
   Delaunay dt;
   Delaunay::Face_handle hint;
   for (size_t i = 0; i < sites.size(); ++i) {
-    if (i % (size_t{1} << 15) == 0 && stop()) return Mesh();
+    if (i % (size_t{1} << 15) == 0 && stop()) return false;
     const Vec2& p = positions[sites[i]];
     const Delaunay::Vertex_handle v = dt.insert(CgalPoint(p.x, p.y), hint);
     v->info() = sites[i];
     hint = v->face();
   }
-  if (stop()) return Mesh();
-  if (dt.dimension() < 2) return Mesh();
+  if (stop()) return false;
+  if (dt.dimension() < 2) return false;
 
   // Number every face (finite and infinite) and emit three half-edges each.
   std::vector<Delaunay::Face_handle> faces;
@@ -52,7 +54,7 @@ Mesh BuildDelaunayWithCgal(absl::Span<const Vec2> positions,
   const size_t num_he = faces.size() * 3;
   std::vector<uint32_t> origin(num_he), twin(num_he);
   for (size_t t = 0; t < faces.size(); ++t) {
-    if (t % (size_t{1} << 20) == 0 && stop()) return Mesh();
+    if (t % (size_t{1} << 20) == 0 && stop()) return false;
     const auto f = faces[t];
     for (int i = 0; i < 3; ++i) {
       const auto v = f->vertex(i);
@@ -64,8 +66,21 @@ Mesh BuildDelaunayWithCgal(absl::Span<const Vec2> positions,
       twin[3 * t + i] = 3 * g->info() + static_cast<uint32_t>((k + 1) % 3);
     }
   }
+  *origin_out = std::move(origin);
+  *twin_out = std::move(twin);
+  return true;
+}
+
+Mesh BuildDelaunayWithCgal(absl::Span<const Vec2> positions,
+                           absl::Span<const uint32_t> sites,
+                           const CancelToken* cancel, bool* cancelled) {
+  std::vector<uint32_t> origin, twin;
+  if (!TriangulateWithCgal(positions, sites, cancel, cancelled, &origin,
+                           &twin)) {
+    return Mesh();
+  }
   return Mesh(static_cast<uint32_t>(positions.size()), std::move(origin),
-              std::move(twin));
+              std::move(twin), Mesh::Layout::kCanonical);
 }
 
 }  // namespace kinetri::core

@@ -10,10 +10,11 @@
 namespace kinetri::core {
 
 Mesh::Mesh(uint32_t num_vertices, std::vector<uint32_t> origin,
-           std::vector<uint32_t> twin)
+           std::vector<uint32_t> twin, Layout layout)
     : num_vertices_(num_vertices),
       origin_(std::move(origin)),
       twin_(std::move(twin)) {
+  if (layout == Layout::kCanonical) SortTriangles();
   RebuildVertexEdges();
 }
 
@@ -69,30 +70,72 @@ void Mesh::RelabelVertex(uint32_t from, uint32_t to) {
 }
 
 void Mesh::SortTrianglesByVertex() {
+  SortTriangles();
+  RebuildVertexEdges();
+}
+
+void Mesh::SortTriangles() {
   const uint32_t nt = num_triangles();
-  std::vector<uint32_t> key(nt);
+  // Each triangle is keyed by its smallest vertex (the infinite vertex
+  // counts as the largest) and turned so that this vertex comes first; the
+  // vertex after it (unique among the triangles of that key: two would share
+  // a directed edge) orders triangles of equal key.
+  const uint32_t inf_key = num_vertices_;
+  auto rank = [&](uint32_t v) { return v == kInfiniteVertex ? inf_key : v; };
+  std::vector<uint32_t> key(nt), second(nt);
+  std::vector<uint8_t> turn(nt);
   ParallelFor(0, nt, [&](size_t t) {
-    uint32_t k = kInfiniteVertex;
-    for (size_t e = 3 * t; e < 3 * t + 3; ++e) k = std::min(k, origin_[e]);
-    key[t] = k == kInfiniteVertex ? num_vertices_ : k;
+    uint32_t best = 0;
+    for (uint32_t k = 1; k < 3; ++k) {
+      if (rank(origin_[3 * t + k]) < rank(origin_[3 * t + best])) best = k;
+    }
+    key[t] = rank(origin_[3 * t + best]);
+    second[t] = rank(origin_[3 * t + (best + 1) % 3]);
+    turn[t] = static_cast<uint8_t>(best);
   });
+  // Bucket by key: counts and places in parallel (the order a bucket gets
+  // filled in does not matter: each bucket is sorted by `second` after).
   std::vector<uint32_t> start(size_t{num_vertices_} + 2, 0);
-  for (uint32_t t = 0; t < nt; ++t) ++start[key[t] + 1];
+  ParallelFor(0, nt, [&](size_t t) {
+    std::atomic_ref<uint32_t>(start[key[t] + 1])
+        .fetch_add(1, std::memory_order_relaxed);
+  });
   for (size_t i = 1; i < start.size(); ++i) start[i] += start[i - 1];
+  std::vector<uint32_t> order(nt);
+  {
+    std::vector<uint32_t> fill(start.begin(), start.end() - 1);
+    ParallelFor(0, nt, [&](size_t t) {
+      const uint32_t at = std::atomic_ref<uint32_t>(fill[key[t]])
+                              .fetch_add(1, std::memory_order_relaxed);
+      order[at] = static_cast<uint32_t>(t);
+    });
+  }
   std::vector<uint32_t> new_of_old(nt);
-  for (uint32_t t = 0; t < nt; ++t) new_of_old[t] = start[key[t]]++;
+  ParallelFor(0, size_t{num_vertices_} + 1, [&](size_t v) {
+    uint32_t* b = order.data() + start[v];
+    uint32_t* e = order.data() + start[v + 1];
+    std::sort(b, e,
+              [&](uint32_t x, uint32_t y) { return second[x] < second[y]; });
+    for (uint32_t* i = b; i != e; ++i) {
+      new_of_old[*i] = static_cast<uint32_t>(i - order.data());
+    }
+  });
+  // Old half-edge 3t+k lands in slot k - turn[t] of the new triangle.
+  auto moved = [&](uint32_t e) {
+    const uint32_t t = e / 3;
+    return 3 * new_of_old[t] + (e % 3 + 3 - turn[t]) % 3;
+  };
   std::vector<uint32_t> origin(origin_.size()), twin(twin_.size());
   ParallelFor(0, nt, [&](size_t t) {
-    const uint32_t nt3 = 3 * new_of_old[t];
     for (uint32_t k = 0; k < 3; ++k) {
-      const uint32_t f = twin_[3 * t + k];
-      origin[nt3 + k] = origin_[3 * t + k];
-      twin[nt3 + k] = 3 * new_of_old[f / 3] + f % 3;
+      const uint32_t e = static_cast<uint32_t>(3 * t + k);
+      const uint32_t to = moved(e);
+      origin[to] = origin_[e];
+      twin[to] = moved(twin_[e]);
     }
   });
   origin_ = std::move(origin);
   twin_ = std::move(twin);
-  RebuildVertexEdges();
 }
 
 void Mesh::UpdateVertexEdgesAfterFlip(uint32_t e) {

@@ -135,10 +135,14 @@ class Mesh {
  public:
   Mesh() = default;
 
+  // kAsGiven keeps the triangles in their slots; kCanonical sorts them as
+  // SortTrianglesByVertex does.
+  enum class Layout { kAsGiven, kCanonical };
+
   // Builds from counter-clockwise triangles (vertex triples, ghosts use
   // kInfiniteVertex) and the twin of each half-edge.
   Mesh(uint32_t num_vertices, std::vector<uint32_t> origin,
-       std::vector<uint32_t> twin);
+       std::vector<uint32_t> twin, Layout layout = Layout::kAsGiven);
 
   MeshView view() {
     return MeshView{origin_.data(), twin_.data(),
@@ -194,14 +198,21 @@ class Mesh {
   // leaving it, and its vertex_edge.
   void RelabelVertex(uint32_t from, uint32_t to);
 
-  // Renumbers triangles in the order of their smallest vertex id (a stable
-  // counting sort), so that with spatially ordered vertices the triangles of
-  // a neighbourhood sit together in memory. Free slots must not exist.
+  // Renumbers triangles in the order of their smallest vertex id, so that
+  // with spatially ordered vertices the triangles of a neighbourhood sit
+  // together in memory, and turns each so that slot 0 holds that vertex.
+  // Triangles of the same smallest vertex follow the vertex after it. The
+  // layout is canonical: two meshes of the same triangles (built in any
+  // order, by any builder) are equal slot for slot afterwards. Free slots
+  // must not exist.
   void SortTrianglesByVertex();
 
   bool empty() const { return origin_.empty(); }
 
  private:
+  // SortTrianglesByVertex without the vertex_edge refresh.
+  void SortTriangles();
+
   uint32_t num_vertices_ = 0;
   std::vector<uint32_t> origin_;
   std::vector<uint32_t> twin_;

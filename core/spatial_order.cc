@@ -1,9 +1,8 @@
 // Hilbert-curve ordering of points, used to number vertices for locality.
 #include "core/spatial_order.h"
 
-#include <tbb/parallel_sort.h>
-
 #include <algorithm>
+#include <array>
 #include <utility>
 
 #include "core/parallel.h"
@@ -12,6 +11,70 @@ namespace kinetri::core {
 namespace {
 constexpr int kOrder = 21;
 constexpr uint32_t kSide = 1u << kOrder;
+constexpr int kKeyBits = 2 * kOrder;
+
+struct Keyed {
+  uint64_t key;
+  uint32_t index;
+};
+
+// Stable least-significant-digit radix sort by key (kKeyBits bits), 11 bits
+// a pass: per-block histograms, then each block scatters its items in
+// parallel. Stable, so equal keys keep their order (the index order the
+// input has). A pass whose digit is the same for every item is skipped.
+void RadixSortByKey(std::vector<Keyed>* items) {
+  constexpr int kDigitBits = 11;
+  constexpr size_t kBuckets = size_t{1} << kDigitBits;
+  constexpr size_t kBlockItems = size_t{1} << 16;
+  const size_t n = items->size();
+  const size_t blocks = (n + kBlockItems - 1) / kBlockItems;
+  std::vector<Keyed> other(n);
+  std::vector<std::array<uint32_t, kBuckets>> hist(blocks);
+  Keyed* src = items->data();
+  Keyed* dst = other.data();
+  for (int shift = 0; shift < kKeyBits; shift += kDigitBits) {
+    auto digit = [shift](uint64_t key) {
+      return static_cast<size_t>((key >> shift) & (kBuckets - 1));
+    };
+    ParallelFor(
+        0, blocks,
+        [&](size_t b) {
+          hist[b].fill(0);
+          const size_t end = std::min(n, (b + 1) * kBlockItems);
+          for (size_t i = b * kBlockItems; i < end; ++i) {
+            ++hist[b][digit(src[i].key)];
+          }
+        },
+        1);
+    // Offsets bucket-major, block-minor (stable); skip a pass that would
+    // leave every item where it is.
+    size_t sum = 0;
+    bool one_bucket = false;
+    for (size_t d = 0; d < kBuckets; ++d) {
+      size_t in_bucket = 0;
+      for (size_t b = 0; b < blocks; ++b) {
+        const uint32_t c = hist[b][d];
+        hist[b][d] = static_cast<uint32_t>(sum);
+        sum += c;
+        in_bucket += c;
+      }
+      if (in_bucket == n) one_bucket = true;
+    }
+    if (one_bucket) continue;
+    ParallelFor(
+        0, blocks,
+        [&](size_t b) {
+          std::array<uint32_t, kBuckets>& at = hist[b];
+          const size_t end = std::min(n, (b + 1) * kBlockItems);
+          for (size_t i = b * kBlockItems; i < end; ++i) {
+            dst[at[digit(src[i].key)]++] = src[i];
+          }
+        },
+        1);
+    std::swap(src, dst);
+  }
+  if (src != items->data()) items->swap(other);
+}
 
 uint32_t Quantize(double v, double lo, double hi) {
   if (!(hi > lo)) return 0;
@@ -56,16 +119,16 @@ std::vector<uint32_t> HilbertOrder(absl::Span<const Vec2> points,
     hi.x = std::max(hi.x, p.x);
     hi.y = std::max(hi.y, p.y);
   }
-  std::vector<std::pair<uint64_t, uint32_t>> keyed(n);
+  std::vector<Keyed> keyed(n);
   ParallelFor(0, n, [&](size_t i) {
     keyed[i] = {HilbertKey(points[i], lo, hi), static_cast<uint32_t>(i)};
   });
-  tbb::parallel_sort(keyed.begin(), keyed.end());
-  for (size_t i = 0; i < n; ++i) order[i] = keyed[i].second;
-  if (keys != nullptr) {
-    keys->resize(n);
-    for (size_t i = 0; i < n; ++i) (*keys)[i] = keyed[i].first;
-  }
+  RadixSortByKey(&keyed);
+  if (keys != nullptr) keys->resize(n);
+  ParallelFor(0, n, [&](size_t i) {
+    order[i] = keyed[i].index;
+    if (keys != nullptr) (*keys)[i] = keyed[i].key;
+  });
   return order;
 }
 

@@ -17,13 +17,13 @@
 
 #include "absl/strings/str_cat.h"
 #include "core/cell_index.h"
-#include "core/cgal_builder.h"
 #include "core/flip_rules.h"
 #include "core/hint_grid.h"
 #include "core/parallel.h"
 #include "core/predicates.h"
 #include "core/site_adjacency.h"
 #include "core/spatial_order.h"
+#include "core/strip_builder.h"
 #include "core/vertex_ops.h"
 
 namespace kinetri::core {
@@ -354,10 +354,10 @@ bool Triangulation::Rebuild(const std::vector<Vec2>& positions_by_ext,
   std::vector<uint32_t> ext_of_int = HilbertOrder(positions_by_ext, &keys);
   std::vector<uint32_t> int_of_ext(n, 0);
   std::vector<Vec2> pos(n);
-  for (uint32_t i = 0; i < n; ++i) {
-    int_of_ext[ext_of_int[i]] = i;
+  ParallelFor(0, n, [&](size_t i) {
+    int_of_ext[ext_of_int[i]] = static_cast<uint32_t>(i);
     pos[i] = positions_by_ext[ext_of_int[i]];
-  }
+  });
   // Group coincident points (each group's representative is its smallest
   // id, its chain in increasing id). Equal positions have equal Hilbert
   // keys, so every group lies in one run of equal keys of the internal
@@ -392,13 +392,14 @@ bool Triangulation::Rebuild(const std::vector<Vec2>& positions_by_ext,
     }
     k = j;
   }
-  std::vector<uint32_t> sites;
-  for (uint32_t i = 0; i < n; ++i) {
-    if (rep[i] == i) sites.push_back(i);
-  }
+  std::vector<uint32_t> sites =
+      has_duplicates ? FilterIndices(n, [&](size_t i) { return rep[i] == i; })
+                     : std::vector<uint32_t>(n);
+  if (!has_duplicates) std::iota(sites.begin(), sites.end(), 0u);
   bool cancelled = false;
-  Mesh mesh = BuildDelaunayWithCgal(pos, sites, cancel, &cancelled);
-  if (cancelled) return false;
+  Mesh mesh = BuildDelaunayInStrips(pos, sites, DefaultStripCount(sites.size()),
+                                    cancel, &cancelled);
+  if (cancelled || (cancel != nullptr && cancel->Cancelled())) return false;
   ext_of_int_ = std::move(ext_of_int);
   int_of_ext_ = std::move(int_of_ext);
   pos_ = std::move(pos);
@@ -408,7 +409,6 @@ bool Triangulation::Rebuild(const std::vector<Vec2>& positions_by_ext,
   sites_ = std::move(sites);
   mesh_ = std::move(mesh);
   MeshChangedOnHost();
-  if (!mesh_.empty()) mesh_.SortTrianglesByVertex();
   removal_touched_.clear();
   line_.clear();
   line_rank_.clear();

@@ -252,8 +252,10 @@ class Triangulation {
   Triangulation() = default;
   void RunImpl(const std::function<void()>& fn) const;
 
-  // Full construction from positions in external order. All or nothing:
-  // false when `cancel` fired, and then nothing of the object changed.
+  // Full construction from positions in external order, on all the arena's
+  // threads (Hilbert order by a parallel radix sort, the triangulation in
+  // strips: core/strip_builder.h). All or nothing: false when `cancel`
+  // fired, and then nothing of the object changed.
   bool Rebuild(const std::vector<Vec2>& positions_by_ext,
                const CancelToken* cancel = nullptr);
   // Local update attempt from pos_ to `to`; false if it must fall back.

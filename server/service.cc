@@ -462,6 +462,9 @@ grpc::Status KinetriServiceImpl::CreateSessionFromBytes(
       ToSteadyDeadline(ctx->deadline()));
   auto tri = core::Triangulation::Create(points, opt, &cancel);
   if (!tri.ok()) return ToGrpc(tri.status());
+  // A deadline that passed after the build's last poll: the client has
+  // given up, so no session is added behind its back.
+  if (absl::Status c = cancel.Check("creation"); !c.ok()) return ToGrpc(c);
   const uint64_t max_results =
       header.options().max_query_results()
           ? std::min(header.options().max_query_results(),
@@ -513,6 +516,14 @@ grpc::Status KinetriServiceImpl::CreateSessionFromBytes(
     session->AttachJournal(*std::move(journal));
     absl::MutexLock lock(&broken_mu_);
     broken_.erase(SessionStore::Key(tenant->name, session->id()));
+  }
+  // Again just before it becomes visible (persisting may take a while).
+  if (absl::Status c = cancel.Check("creation"); !c.ok()) {
+    if (store_ != nullptr) {
+      session->journal()->Close();
+      store_->Remove(tenant->name, session->id()).IgnoreError();
+    }
+    return ToGrpc(c);
   }
   auto added = registry_->Add(session, *tenant);
   if (!added.ok()) {

@@ -316,6 +316,42 @@ TEST(Kinetic, ResultIndependentOfThreadCount) {
   }
 }
 
+// Big enough for the rebuild to run in strips on several threads (one
+// thread builds serially): the same mesh, slot for slot, after creation and
+// after steps that rebuild, and it is CGAL's.
+TEST(Kinetic, RebuildInStripsEqualsSerialBuild) {
+  const size_t n = 150000;
+  const auto pts = testing::ClusteredPoints(n, 103);
+  TriangulationOptions one = testing::ExecutorOptions();
+  one.num_threads = 1;
+  TriangulationOptions four = testing::ExecutorOptions();
+  four.num_threads = 4;
+  auto a = Triangulation::Create(pts, one);
+  auto b = Triangulation::Create(pts, four);
+  ASSERT_TRUE(a.ok() && b.ok());
+  std::mt19937_64 rng_a(104), rng_b(104);
+  for (int s = 0; s < 3; ++s) {
+    if (s > 0) {
+      // Two mean spacings: every step is a rebuild.
+      auto ra =
+          a->ApplyDisplacements(Brownian(n, 2.0 / std::sqrt(double(n)), rng_a));
+      auto rb =
+          b->ApplyDisplacements(Brownian(n, 2.0 / std::sqrt(double(n)), rng_b));
+      ASSERT_TRUE(ra.ok() && rb.ok());
+      EXPECT_EQ(ra->path, UpdatePath::kRebuilt);
+      EXPECT_EQ(rb->path, UpdatePath::kRebuilt);
+    }
+    const TriangulationView va = a->view(), vb = b->view();
+    ASSERT_EQ(va.mesh.num_half_edges, vb.mesh.num_half_edges);
+    for (uint32_t e = 0; e < va.mesh.num_half_edges; ++e) {
+      ASSERT_EQ(va.mesh.origin[e], vb.mesh.origin[e]) << "step " << s;
+      ASSERT_EQ(va.mesh.twin[e], vb.mesh.twin[e]) << "step " << s;
+    }
+    EXPECT_TRUE(b->Validate().ok());
+    EXPECT_EQ(EdgesAsPositions(*b), CgalDelaunayEdges(b->Positions()));
+  }
+}
+
 TEST(Kinetic, BadInputIsRejectedAndChangesNothing) {
   const size_t n = 300;
   auto t = Triangulation::Create(testing::UniformPoints(n, 111),

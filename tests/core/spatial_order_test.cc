@@ -78,12 +78,10 @@ TEST(SpatialOrder, CurveVisitsEveryCellOnceInUnitSteps) {
   }
 }
 
-TEST(SpatialOrder, OrderIsThePermutationSortedByKeyThenIndex) {
-  std::mt19937_64 rng(8);
-  std::uniform_real_distribution<double> u(-3.0, 5.0);
-  std::vector<Vec2> pts(5000);
-  for (Vec2& p : pts) p = {u(rng), u(rng)};
-  for (int i = 0; i < 100; ++i) pts.push_back(pts[i]);  // equal keys
+// HilbertOrder sorts by a parallel radix sort in blocks of 64K points:
+// sizes on both sides of a block, equal keys, points bunched so that some
+// digits are equal everywhere (passes skipped), and all points equal.
+void ExpectSortedByKeyThenIndex(const std::vector<Vec2>& pts) {
   const std::vector<uint32_t> order = HilbertOrder(pts);
   ASSERT_EQ(order.size(), pts.size());
   std::vector<uint32_t> seen = order;
@@ -99,8 +97,30 @@ TEST(SpatialOrder, OrderIsThePermutationSortedByKeyThenIndex) {
   for (size_t i = 1; i < order.size(); ++i) {
     const uint64_t a = HilbertKey(pts[order[i - 1]], lo, hi);
     const uint64_t b = HilbertKey(pts[order[i]], lo, hi);
-    EXPECT_TRUE(a < b || (a == b && order[i - 1] < order[i])) << i;
+    ASSERT_TRUE(a < b || (a == b && order[i - 1] < order[i])) << i;
   }
+}
+
+TEST(SpatialOrder, OrderIsThePermutationSortedByKeyThenIndex) {
+  std::mt19937_64 rng(8);
+  std::uniform_real_distribution<double> u(-3.0, 5.0);
+  for (size_t n : {size_t{5000}, size_t{200000}}) {
+    std::vector<Vec2> pts(n);
+    for (Vec2& p : pts) p = {u(rng), u(rng)};
+    for (int i = 0; i < 100; ++i) pts.push_back(pts[i]);  // equal keys
+    ExpectSortedByKeyThenIndex(pts);
+  }
+  // Bunched in one corner cell of the curve but two (the bounding box).
+  std::uniform_real_distribution<double> tiny(0.0, 1e-5);
+  std::vector<Vec2> bunched(70000);
+  for (Vec2& p : bunched) p = {tiny(rng), tiny(rng)};
+  bunched.push_back({1.0, 1.0});
+  bunched.push_back({0.0, 1.0});
+  ExpectSortedByKeyThenIndex(bunched);
+  // All equal: every key equal, the order is the index order.
+  const std::vector<Vec2> same(70000, Vec2{0.5, 0.25});
+  const std::vector<uint32_t> order = HilbertOrder(same);
+  for (uint32_t i = 0; i < order.size(); ++i) ASSERT_EQ(order[i], i);
 }
 
 }  // namespace
