@@ -20,7 +20,8 @@ struct StripBuildStats {
   uint32_t strips = 0;           // strips built (1: a serial CGAL build)
   uint64_t seam_triangles = 0;   // triangles added between strip hulls
   uint64_t seam_flips = 0;       // Lawson flips that made the seams Delaunay
-  bool serial_fallback = false;  // a strip spanned < 2 dimensions
+  bool serial_fallback = false;  // a strip spanned < 2 dimensions, or the
+                                 // strips' hulls held too many vertices
 };
 
 // Strips BuildDelaunayInStrips should use for `num_sites` sites in the
@@ -38,9 +39,11 @@ uint32_t DefaultStripCount(size_t num_sites);
 // triangulation with the symbolic perturbation is unique, so the result has
 // the same triangles as the serial build, whatever `strips` is, and both
 // come in the canonical layout: the two meshes are equal slot for slot. A
-// strip whose sites span
-// fewer than two dimensions makes the whole build serial. `cancel` is polled
-// by every strip's CGAL build, before each stitch and every 64K flips.
+// strip whose sites span fewer than two dimensions, or strips whose hulls
+// hold more than max(4096, 1/64 of the sites) vertices in all (points in
+// convex position: stitching would cost more than it saves), make the
+// whole build serial. `cancel` is polled by every strip's CGAL build,
+// before each stitch and every 64K flips.
 Mesh BuildDelaunayInStrips(absl::Span<const Vec2> positions,
                            absl::Span<const uint32_t> sites, uint32_t strips,
                            const CancelToken* cancel = nullptr,

@@ -6,6 +6,7 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <chrono>
 #include <cmath>
 #include <numeric>
 #include <random>
@@ -147,6 +148,50 @@ TEST(StripBuilder, CollinearStripFallsBackToSerial) {
   // All collinear: no triangulation at all, like the serial build.
   const auto line = SpatiallyOrdered(testing::Collinear(500, 2));
   EXPECT_TRUE(BuildDelaunayInStrips(line, DistinctSites(line), 4).empty());
+}
+
+// Points in convex position (every site on its strip's hull) are built
+// serially: stitching hulls that large costs more than the strips save.
+TEST(StripBuilder, ConvexPositionBuildsSerially) {
+  std::vector<Vec2> parabola;
+  for (int i = 0; i < 20000; ++i) {
+    const double t = i / 1000.0;
+    parabola.push_back({t, t * t});
+  }
+  const auto pts = SpatiallyOrdered(parabola);
+  const StripBuildStats s = ExpectSameAsSerial(pts, DistinctSites(pts), 4);
+  EXPECT_TRUE(s.serial_fallback);
+  EXPECT_EQ(s.strips, 1u);
+}
+
+// Regression: sites inserted in a straight spatial order along a convex
+// curve each land outside the hull next to the last one and cost a
+// quadratic number of flips (80K points on a parabola took 2.3 s in 2
+// strips; 200K took 12.5 s when this test was written against the straight
+// order). Insertion in rounds keeps it near linear: 200K such points take
+// about 0.15-0.4 s, serially (the curve in one quadrant of the bounding
+// box) and in strips.
+TEST(StripBuilder, ConvexCurveIsNotQuadratic) {
+  std::vector<Vec2> raw;
+  for (int i = 0; i < 200000; ++i) {
+    const double t = i / 10000.0;
+    raw.push_back({t, t * t});
+  }
+  for (uint32_t strips : {1u, 2u}) {
+    std::vector<Vec2> curve = raw;
+    if (strips == 1) {  // the curve in one quadrant of the bounding box
+      curve.push_back({-1000.0, -1000.0});
+      curve.push_back({1000.0, 1000.0});
+    }
+    const auto pts = SpatiallyOrdered(curve);
+    const auto t0 = std::chrono::steady_clock::now();
+    const Mesh mesh = BuildDelaunayInStrips(pts, DistinctSites(pts), strips);
+    const double s =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - t0)
+            .count();
+    EXPECT_FALSE(mesh.empty());
+    EXPECT_LT(s, 4.0) << strips << " strips";
+  }
 }
 
 TEST(StripBuilder, CancelledBuildReturnsNothing) {
