@@ -66,7 +66,7 @@ bool TriangulateWithCgal(absl::Span<const Vec2> positions,
   Delaunay dt;
   Delaunay::Face_handle hint;
   for (size_t i = 0; i < order.size(); ++i) {
-    if (i % (size_t{1} << 15) == 0 && stop()) return false;
+    if (i % (size_t{1} << 13) == 0 && stop()) return false;
     const Vec2& p = positions[order[i]];
     const Delaunay::Vertex_handle v = dt.insert(CgalPoint(p.x, p.y), hint);
     v->info() = order[i];

@@ -20,7 +20,7 @@ namespace kinetri::core {
 // Sites are inserted in the order given, each located from the one before:
 // in spatial order (as the triangulation's internal ids are) that takes
 // linear time; any order is correct. `cancel` (optional) is polled every
-// 32K insertions (a few tens of milliseconds) and 1M converted faces; when
+// 8K insertions (a few milliseconds) and 1M converted faces; when
 // it fires the result is an empty mesh and *cancelled is set.
 Mesh BuildDelaunayWithCgal(absl::Span<const Vec2> positions,
                            absl::Span<const uint32_t> sites,

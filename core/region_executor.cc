@@ -304,6 +304,21 @@ void RegionExecutor::Hold(uint32_t v, uint32_t edge,
   }
 }
 
+void RegionExecutor::HoldMovingHullVertices(const MeshView& m) {
+  const uint32_t nt = m.num_half_edges / 3;
+  const uint32_t g0 = hull_hint_;
+  if (g0 >= nt || m.IsFree(g0) || !m.IsGhost(g0)) return;
+  uint32_t g = g0;
+  for (uint32_t steps = 0; steps <= nt; ++steps) {
+    const uint32_t s = rules::SpokeOf(m, g);
+    if (s == kNoEdge) return;
+    const uint32_t v = m.origin[s];
+    if (v < held_.size() && !held_[v] && cur_[v] != (*from_)[v]) Hold(v, s);
+    g = TriangleOf(m.twin[Next(s)]);
+    if (g == g0) return;
+  }
+}
+
 void RegionExecutor::HoldCulprits(const Mesh& mesh,
                                   std::vector<uint32_t> queue) {
   HoldCulpritsIn<false>(mesh.view(), Bounds{}, queue, nullptr, nullptr);
@@ -497,20 +512,27 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
     FixLoop<false>(m, p, Bounds{}, serial.stack, serial.waiting,
                    serial.deferred, &serial.log, &serial.counts,
                    tri_mark_.data(), nullptr);
-    // Stuck triangles: hold their culprits where the mesh is now and go on
-    // fixing around them (serially; they are few).
-    for (int local = 0; !serial.waiting.empty() && local < 16; ++local) {
+    // Stuck triangles, or a hull that winds twice: hold their culprits
+    // (the moving hull vertices) where the mesh is now and go on fixing
+    // around them (serially; they are few), instead of undoing the pass.
+    for (int local = 0; local < 16; ++local) {
       const size_t before = held_list_.size();
-      HoldCulprits(mesh, serial.waiting);
-      if (held_list_.size() == before) {
-        for (uint32_t t : serial.waiting) {
-          for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
-            const uint32_t v = m.origin[e];
-            if (v < held_.size() && !held_[v] && cur_[v] != (*from_)[v]) {
-              Hold(v, e);
+      if (!serial.waiting.empty()) {
+        HoldCulprits(mesh, serial.waiting);
+        if (held_list_.size() == before) {
+          for (uint32_t t : serial.waiting) {
+            for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
+              const uint32_t v = m.origin[e];
+              if (v < held_.size() && !held_[v] && cur_[v] != (*from_)[v]) {
+                Hold(v, e);
+              }
             }
           }
         }
+      } else if (HullWindsOnceFrom(mesh, cur_, &hull_hint_)) {
+        break;
+      } else {
+        HoldMovingHullVertices(m);
       }
       if (held_list_.size() == before) break;
       serial.stack.swap(serial.waiting);

@@ -166,6 +166,8 @@ class RegionExecutor {
                 const RegionStepPolicy& policy, RegionStepStats* stats,
                 std::string* reason);
   void HoldCulprits(const Mesh& mesh, std::vector<uint32_t> suspects);
+  // Holds every moving vertex of the hull (walked from hull_hint_).
+  void HoldMovingHullVertices(const MeshView& m);
   template <bool kBounded>
   void HoldCulpritsIn(const MeshView& m, RegionSlots b,
                       std::vector<uint32_t>& queue,

@@ -325,6 +325,7 @@ Mesh BuildDelaunayInStrips(absl::Span<const Vec2> positions,
       return serial();
     }
   }
+  if (stop()) return Mesh();
   stats->strips = strips;
   return Mesh(static_cast<uint32_t>(positions.size()), std::move(as.origin),
               std::move(as.twin), Mesh::Layout::kCanonical);

@@ -396,6 +396,7 @@ bool Triangulation::Rebuild(const std::vector<Vec2>& positions_by_ext,
       has_duplicates ? FilterIndices(n, [&](size_t i) { return rep[i] == i; })
                      : std::vector<uint32_t>(n);
   if (!has_duplicates) std::iota(sites.begin(), sites.end(), 0u);
+  if (cancel != nullptr && cancel->Cancelled()) return false;
   bool cancelled = false;
   Mesh mesh = BuildDelaunayInStrips(pos, sites, DefaultStripCount(sites.size()),
                                     cancel, &cancelled);

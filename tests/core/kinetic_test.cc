@@ -574,7 +574,8 @@ StepReport ExpectStoppableToTheEnd(const TriangulationOptions& options,
     for (size_t i = 1; i < at.size(); ++i) {
       longest = std::max(longest, at[i] - at[i - 1]);
     }
-    // CGAL inserts 32K points between polls, a third of the points here.
+    // CGAL inserts 8K points between polls, and the build polls between
+    // its phases.
     EXPECT_LT(longest, (end - start) / 2)
         << "a stretch of the step polls no token: "
         << std::chrono::duration<double, std::milli>(longest).count()
@@ -605,7 +606,7 @@ StepReport ExpectStoppableToTheEnd(const TriangulationOptions& options,
 }
 
 // A step that the cost model turns into a rebuild can be stopped inside the
-// rebuild (CGAL builds in batches of 32K insertions with the token polled
+// rebuild (CGAL builds in batches of 8K insertions with the token polled
 // between them; the new triangulation is built aside): the previous step
 // stays, exactly.
 TEST(Kinetic, CancelledRebuildLeavesThePreviousStep) {
