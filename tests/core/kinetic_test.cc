@@ -576,6 +576,11 @@ StepReport ExpectStoppableToTheEnd(const TriangulationOptions& options,
     }
     // CGAL inserts 8K points between polls, and the build polls between
     // its phases.
+    std::printf(
+        "longest stretch without a poll: %.1f ms of %.1f ms (%d polls)\n",
+        std::chrono::duration<double, std::milli>(longest).count(),
+        std::chrono::duration<double, std::milli>(end - start).count(),
+        total.load());
     EXPECT_LT(longest, (end - start) / 2)
         << "a stretch of the step polls no token: "
         << std::chrono::duration<double, std::milli>(longest).count()
