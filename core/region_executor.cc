@@ -7,6 +7,7 @@
 #include <algorithm>
 #include <atomic>
 #include <chrono>
+#include <cstring>
 #include <optional>
 
 #include "absl/strings/str_cat.h"
@@ -902,13 +903,45 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
       return false;
     }
     HoldCulpritsInRegions(mesh, queue, rt);
-    std::vector<uint32_t> around;
-    for (uint32_t v : held_list_) AppendStarAndHullRing(mesh, v, &around);
-    std::sort(around.begin(), around.end());
-    around.erase(std::unique(around.begin(), around.end()), around.end());
-    for (uint32_t t : around) {
-      tri_mark_[t] = 1;
-      regions_[t / rt].invalid.push_back(t);
+    // The stars (and hull rings) of the held vertices are fixed again:
+    // marked by all threads, then listed by each region in slot order
+    // (the order of a sorted list, for any thread count).
+    if (!held_list_.empty()) {
+      around_mark_.resize(nt, 0);  // all zero between steps
+      uint8_t* am = around_mark_.data();
+      tbb::parallel_for(tbb::blocked_range<size_t>(0, held_list_.size(), 256),
+                        [&](const tbb::blocked_range<size_t>& range) {
+                          std::vector<uint32_t> around;
+                          for (size_t i = range.begin(); i != range.end();
+                               ++i) {
+                            around.clear();
+                            AppendStarAndHullRing(mesh, held_list_[i], &around);
+                            for (uint32_t t : around) {
+                              std::atomic_ref<uint8_t>(am[t]).store(
+                                  1, std::memory_order_relaxed);
+                            }
+                          }
+                        });
+      for_each_region([&](size_t r, uint32_t lo, uint32_t hi) {
+        Region& g = regions_[r];
+        uint32_t t = lo;
+        while (t < hi) {
+          if (t % 8 == 0 && t + 8 <= hi) {
+            uint64_t word;
+            std::memcpy(&word, am + t, 8);
+            if (word == 0) {
+              t += 8;
+              continue;
+            }
+          }
+          if (am[t]) {
+            am[t] = 0;
+            tri_mark_[t] = 1;
+            g.invalid.push_back(t);
+          }
+          ++t;
+        }
+      });
     }
   }
   stats->scan_seconds += SecondsSince(t0);

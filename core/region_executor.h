@@ -216,6 +216,7 @@ class RegionExecutor {
   std::vector<uint32_t> held_list_;
   std::vector<uint32_t> held_edge_;  // a half-edge leaving each, when held
   std::vector<uint8_t> tri_mark_;    // per triangle: changed by a region flip
+  std::vector<uint8_t> around_mark_;  // per triangle: scratch, zero between
   std::vector<Region> regions_;
   Region serial_;  // the serial pass over what crossed region boundaries
   std::vector<uint32_t> fix_serial_log_;  // the serial fix's flips (fix_log)
