@@ -214,8 +214,8 @@ class RegionExecutor {
   std::vector<Vec2> cur_;      // positions the mesh is repaired for
   std::vector<uint8_t> held_;  // per vertex
   std::vector<uint32_t> held_list_;
-  std::vector<uint32_t> held_edge_;  // a half-edge leaving each, when held
-  std::vector<uint8_t> tri_mark_;    // per triangle: changed by a region flip
+  std::vector<uint32_t> held_edge_;   // a half-edge leaving each, when held
+  std::vector<uint8_t> tri_mark_;     // per triangle: changed by a region flip
   std::vector<uint8_t> around_mark_;  // per triangle: scratch, zero between
   std::vector<Region> regions_;
   Region serial_;  // the serial pass over what crossed region boundaries
