@@ -308,20 +308,39 @@ void KineticExecutor::Legalize(Mesh& mesh, const std::vector<Vec2>& pos,
   scratch.Ensure(mesh);
   std::vector<uint32_t>& tri_claim = scratch.tri_claim;
   std::vector<uint32_t> no_vertices;
+  // Each predicate is evaluated once per change: `work` holds the edges to
+  // test; `known` the illegal edges that lost their claim while neither of
+  // their triangles changed (still illegal, not tested again). Both sorted;
+  // they are disjoint (an edge of an unchanged triangle pair is no outer
+  // edge of a flipped quad). The winners are those of re-testing every
+  // loser: a loser whose triangle flipped reappears as an outer edge of
+  // that quad.
+  std::vector<uint32_t> known;
   while (true) {
     std::vector<uint32_t> idx = Filter(
         work.size(), [&](size_t i) { return rules::IsIllegal(m, p, work[i]); });
-    if (idx.empty()) break;
-    std::vector<uint32_t> edges(idx.size());
-    for (size_t i = 0; i < idx.size(); ++i) edges[i] = work[idx[i]];
+    std::vector<uint32_t> edges(known.size() + idx.size());
+    {
+      std::vector<uint32_t> tested(idx.size());
+      for (size_t i = 0; i < idx.size(); ++i) tested[i] = work[idx[i]];
+      std::merge(known.begin(), known.end(), tested.begin(), tested.end(),
+                 edges.begin());
+    }
+    if (edges.empty()) break;
     const std::vector<uint32_t> winners =
         SelectIndependent(m, edges, nullptr, tri_claim, no_vertices);
     ParallelFor(0, winners.size(),
                 [&](size_t i) { m.Flip(edges[winners[i]]); });
     for (uint32_t w : winners) mesh.UpdateVertexEdgesAfterFlip(edges[w]);
-    // Next worklist: losers plus the four outer edges of each flipped quad.
-    std::vector<uint32_t> next;
-    next.reserve(edges.size() + 4 * winners.size());
+    // The flipped triangles (flips keep triangle ids) are marked in
+    // tri_claim (kNoEdge between rounds) while the losers are sorted out.
+    ParallelFor(0, winners.size(), [&](size_t i) {
+      const uint32_t e = edges[winners[i]];
+      tri_claim[TriangleOf(e)] = 0;
+      tri_claim[TriangleOf(m.twin[e])] = 0;
+    });
+    std::vector<uint32_t> next_known;
+    next_known.reserve(edges.size() - winners.size());
     {
       size_t w = 0;
       for (size_t i = 0; i < edges.size(); ++i) {
@@ -329,17 +348,26 @@ void KineticExecutor::Legalize(Mesh& mesh, const std::vector<Vec2>& pos,
           ++w;
           continue;
         }
-        next.push_back(edges[i]);
+        const uint32_t e = edges[i];
+        if (tri_claim[TriangleOf(e)] != 0 &&
+            tri_claim[TriangleOf(m.twin[e])] != 0) {
+          next_known.push_back(e);
+        }
       }
     }
-    const size_t base = next.size();
-    next.resize(base + 4 * winners.size());
+    ParallelFor(0, winners.size(), [&](size_t i) {
+      const uint32_t e = edges[winners[i]];
+      tri_claim[TriangleOf(e)] = kNoEdge;
+      tri_claim[TriangleOf(m.twin[e])] = kNoEdge;
+    });
+    // Next worklist: the four outer edges of each flipped quad.
+    std::vector<uint32_t> next(4 * winners.size());
     ParallelFor(0, winners.size(), [&](size_t i) {
       const uint32_t e = edges[winners[i]], f = m.twin[e];
-      next[base + 4 * i + 0] = Canonical(m, Next(e));
-      next[base + 4 * i + 1] = Canonical(m, Prev(e));
-      next[base + 4 * i + 2] = Canonical(m, Next(f));
-      next[base + 4 * i + 3] = Canonical(m, Prev(f));
+      next[4 * i + 0] = Canonical(m, Next(e));
+      next[4 * i + 1] = Canonical(m, Prev(e));
+      next[4 * i + 2] = Canonical(m, Next(f));
+      next[4 * i + 3] = Canonical(m, Prev(f));
     });
     if (counts) {
       ++counts->legalize_rounds;
@@ -347,6 +375,7 @@ void KineticExecutor::Legalize(Mesh& mesh, const std::vector<Vec2>& pos,
     }
     SortUnique(next);
     work = std::move(next);
+    known = std::move(next_known);
   }
 }
 

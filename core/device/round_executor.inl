@@ -23,6 +23,7 @@
 #include <thrust/for_each.h>
 #include <thrust/gather.h>
 #include <thrust/iterator/counting_iterator.h>
+#include <thrust/merge.h>
 #include <thrust/remove.h>
 #include <thrust/sort.h>
 #include <thrust/transform.h>
@@ -248,6 +249,34 @@ struct OuterEdges {
   }
 };
 
+// Marks (value 0) or unmarks (kNoEdge) in tri_claim the two triangles of
+// each winner edge (flips keep triangle ids; claims are released then).
+struct MarkFlipped {
+  MeshView m;
+  const uint32_t* winner_edges;
+  uint32_t* tri_claim;
+  uint32_t value;
+  KINETRI_HD void operator()(uint32_t i) const {
+    const uint32_t e = winner_edges[i];
+    tri_claim[TriangleOf(e)] = value;
+    tri_claim[TriangleOf(m.twin[e])] = value;
+  }
+};
+
+// Proposal i lost its claim and neither of its triangles flipped: the
+// edge is still illegal (its four vertices did not change).
+struct UnchangedLoser {
+  MeshView m;
+  const uint32_t* edges;
+  const uint8_t* won;
+  const uint32_t* tri_claim;
+  KINETRI_HD bool operator()(uint32_t i) const {
+    const uint32_t e = edges[i];
+    return won[i] == 0 && tri_claim[TriangleOf(e)] != 0 &&
+           tri_claim[TriangleOf(m.twin[e])] != 0;
+  }
+};
+
 // Hull winding as a reduction over the ghost triangles (the ghosts form
 // one cycle around the infinite vertex, so counting them equals walking
 // them): it winds once iff there are at least three, each has a spoke with
@@ -392,7 +421,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     for (const U32Vector* v :
          {&origin_, &twin_, &vertex_edge_, &last_, &tri_claim_, &vert_claim_,
           &work_, &bad_, &edges_, &joins_, &kinds_, &winners_, &win_edges_,
-          &next_, &touched_, &seeds_}) {
+          &next_, &touched_, &seeds_, &known_}) {
       words += v->capacity();
     }
     return words * sizeof(uint32_t) + pos_.capacity() * sizeof(Vec2) +
@@ -589,15 +618,24 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   }
 
   // Legalizing rounds over work_ (canonical edges, sorted, unique). False
-  // when cancelled.
+  // when cancelled. Each predicate is evaluated once per change: work_
+  // holds the edges to test, known_ the illegal edges that lost their claim
+  // while neither of their triangles flipped (not tested again); both
+  // sorted and disjoint. The winners are those of re-testing every loser (a
+  // loser whose triangle flipped comes back as an outer edge of its quad),
+  // as in the round executor (core/kinetic.cc).
   bool Legalize(const MeshView& m, const Vec2* p, const CancelToken* cancel,
                 FlipCounts* counts) {
+    known_.clear();
     while (true) {
       if (cancel != nullptr && cancel->Cancelled()) return false;
-      edges_.resize(work_.size());
-      edges_.erase(thr::copy_if(work_.begin(), work_.end(), edges_.begin(),
-                                EdgeIllegal{m, p}),
-                   edges_.end());
+      next_.resize(work_.size());
+      next_.erase(thr::copy_if(work_.begin(), work_.end(), next_.begin(),
+                               EdgeIllegal{m, p}),
+                  next_.end());
+      edges_.resize(known_.size() + next_.size());
+      thr::merge(known_.begin(), known_.end(), next_.begin(), next_.end(),
+                 edges_.begin());
       if (edges_.empty()) return true;
       const uint32_t ni = static_cast<uint32_t>(edges_.size());
       const uint32_t nw = SelectWinners(
@@ -606,20 +644,25 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       thr::gather(winners_.begin(), winners_.end(), edges_.begin(),
                   win_edges_.begin());
       FlipWinners(m, nw);
-      // Next worklist: the losers plus the four outer edges of each flipped
-      // quad (duplicates of the winners' own edges vanish in the sort).
-      next_.resize(ni + 4ull * nw);
-      const auto losers_end =
-          thr::copy_if(edges_.begin(), edges_.end(), flags_.begin(),
-                       next_.begin(), IsClear{});
-      const size_t nl = losers_end - next_.begin();
-      next_.resize(nl + 4ull * nw);
+      // Losers whose triangles did not flip stay known to be illegal.
       thr::for_each(Count(0), Count(nw),
-                    OuterEdges{m, Raw(win_edges_), Raw(next_) + nl});
+                    MarkFlipped{m, Raw(win_edges_), Raw(tri_claim_), 0});
+      known_.resize(ni);
+      known_.erase(
+          thr::copy_if(edges_.begin(), edges_.end(), Count(0), known_.begin(),
+                       UnchangedLoser{m, Raw(edges_),
+                                      thr::raw_pointer_cast(flags_.data()),
+                                      Raw(tri_claim_)}),
+          known_.end());
+      thr::for_each(Count(0), Count(nw),
+                    MarkFlipped{m, Raw(win_edges_), Raw(tri_claim_), kNoEdge});
+      // Next worklist: the four outer edges of each flipped quad.
+      work_.resize(4ull * nw);
+      thr::for_each(Count(0), Count(nw),
+                    OuterEdges{m, Raw(win_edges_), Raw(work_)});
       ++counts->legalize_rounds;
       counts->delaunay += nw;
-      SortUnique(next_);
-      work_.swap(next_);
+      SortUnique(work_);
     }
   }
 
@@ -665,7 +708,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   U32Vector tri_claim_, vert_claim_;  // kNoEdge between rounds
   // Scratch kept across rounds and steps (grown, never shrunk).
   U32Vector work_, bad_, edges_, joins_, kinds_, winners_, win_edges_, next_,
-      touched_, seeds_;
+      touched_, seeds_, known_;
   thr::device_vector<uint8_t> flags_;
   thr::device_vector<rules::FixProposal> props_;
   QueryEngine queries_;  // the query view and the queries over it
