@@ -1,9 +1,12 @@
 #include "core/hint_grid.h"
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <vector>
+
+#include "core/parallel.h"
 
 namespace kinetri::core {
 namespace {
@@ -56,11 +59,28 @@ void FillEmpty(uint32_t* cells, size_t side) {
 HintGrid::HintGrid(const TriangulationView& v) {
   if (v.num_sites == 0) return;
   view_.fallback = v.sites[0];
-  Vec2 lo = v.pos[v.sites[0]], hi = lo;
-  for (uint32_t i = 0; i < v.num_sites; ++i) {
-    const Vec2& p = v.pos[v.sites[i]];
-    lo = {std::min(lo.x, p.x), std::min(lo.y, p.y)};
-    hi = {std::max(hi.x, p.x), std::max(hi.y, p.y)};
+  // The bounding box, by blocks on all threads.
+  constexpr size_t kBlock = 16384;
+  const size_t num_blocks = (size_t{v.num_sites} + kBlock - 1) / kBlock;
+  std::vector<Vec2> block_lo(num_blocks), block_hi(num_blocks);
+  ParallelFor(
+      0, num_blocks,
+      [&](size_t b) {
+        const size_t end = std::min<size_t>(v.num_sites, (b + 1) * kBlock);
+        Vec2 lo = v.pos[v.sites[b * kBlock]], hi = lo;
+        for (size_t i = b * kBlock; i < end; ++i) {
+          const Vec2& p = v.pos[v.sites[i]];
+          lo = {std::min(lo.x, p.x), std::min(lo.y, p.y)};
+          hi = {std::max(hi.x, p.x), std::max(hi.y, p.y)};
+        }
+        block_lo[b] = lo;
+        block_hi[b] = hi;
+      },
+      1);
+  Vec2 lo = block_lo[0], hi = block_hi[0];
+  for (size_t b = 1; b < num_blocks; ++b) {
+    lo = {std::min(lo.x, block_lo[b].x), std::min(lo.y, block_lo[b].y)};
+    hi = {std::max(hi.x, block_hi[b].x), std::max(hi.y, block_hi[b].y)};
   }
   view_.lo = lo;
   view_.hi = hi;
@@ -70,23 +90,25 @@ HintGrid::HintGrid(const TriangulationView& v) {
   view_.scale = {hi.x > lo.x ? side / (hi.x - lo.x) : 0.0,
                  hi.y > lo.y ? side / (hi.y - lo.y) : 0.0};
   cells_.assign(num_cells, kNoVertex);
-  // The first site (in internal, i.e. Hilbert, order) found in each cell,
-  // how many each cell holds, and where each site lies in its cell.
+  // The first site (in internal, i.e. Hilbert, order: the smallest id)
+  // found in each cell, how many each cell holds, and where each site lies
+  // in its cell; in parallel, the same for any thread count.
   std::vector<uint32_t> cell_of(v.num_sites), within(v.num_sites),
       count(num_cells, 0);
-  for (uint32_t i = 0; i < v.num_sites; ++i) {
+  ParallelFor(0, v.num_sites, [&](size_t i) {
     const uint32_t s = v.sites[i];
     uint32_t ix, iy, fx, fy;
     view_.Locate(v.pos[s], &ix, &iy, &fx, &fy);
     const size_t c = size_t{iy} * side + ix;
     cell_of[i] = static_cast<uint32_t>(c);
     within[i] = fy << 16 | fx;
-    if (cells_[c] == kNoVertex) cells_[c] = s;
-    ++count[c];
-  }
+    AtomicMin(&cells_[c], s);
+    std::atomic_ref<uint32_t>(count[c]).fetch_add(1, std::memory_order_relaxed);
+  });
   FillEmpty(cells_.data(), side);
   // Sub-grids of the crowded cells, after the cells (their offsets reuse
   // `count`: 0 for a cell that is not refined).
+  std::vector<uint32_t> refined;
   for (size_t c = 0; c < num_cells; ++c) {
     const uint32_t k = count[c];
     count[c] = 0;
@@ -98,24 +120,26 @@ HintGrid::HintGrid(const TriangulationView& v) {
     cells_.push_back(n);
     cells_.resize(off + 1 + size_t{n} * n, kNoVertex);
     count[c] = static_cast<uint32_t>(off);
+    refined.push_back(static_cast<uint32_t>(c));
   }
   view_.cells = cells_.data();
-  // The first site of each sub-cell: backwards, the last write wins (no
-  // load, no branch on the entry).
-  for (uint32_t i = v.num_sites; i-- > 0;) {
+  // The first site of each sub-cell.
+  ParallelFor(0, v.num_sites, [&](size_t i) {
     const uint32_t off = count[cell_of[i]];
-    if (off == 0) continue;
-    cells_[view_.SubCell(HintGridView::kRefined | off, within[i] & 0xFFFFu,
-                         within[i] >> 16)] = v.sites[i];
-  }
-  for (size_t c = 0; c < num_cells; ++c) {
-    const uint32_t off = count[c];
-    if (off == 0) continue;
-    const uint32_t n = cells_[off];
-    uint32_t* sub = cells_.data() + off + 1;
-    FillEmpty(sub, n);  // every sub-grid holds a site: none stays empty
-    cells_[c] = HintGridView::kRefined | off;
-  }
+    if (off == 0) return;
+    AtomicMin(&cells_[view_.SubCell(HintGridView::kRefined | off,
+                                    within[i] & 0xFFFFu, within[i] >> 16)],
+              v.sites[i]);
+  });
+  ParallelFor(
+      0, refined.size(),
+      [&](size_t j) {
+        const uint32_t c = refined[j], off = count[c];
+        // Every sub-grid holds a site: no entry stays empty.
+        FillEmpty(cells_.data() + off + 1, cells_[off]);
+        cells_[c] = HintGridView::kRefined | off;
+      },
+      16);
 }
 
 HintGridView HintGrid::view() const {

@@ -85,7 +85,8 @@ struct HintGridView {
 
 class HintGrid {
  public:
-  // About four sites per cell, and per cell of each sub-grid.
+  // About four sites per cell, and per cell of each sub-grid. Runs on all
+  // threads: call inside the triangulation's thread arena.
   explicit HintGrid(const TriangulationView& v);
   // Valid while this grid lives; `cells` points into host memory.
   HintGridView view() const;
