@@ -33,19 +33,11 @@ struct HintGridView {
 
   KINETRI_HD uint32_t Hint(const Vec2& q) const {
     if (side == 0) return fallback;
-    const double tx = (q.x - lo.x) * scale.x, ty = (q.y - lo.y) * scale.y;
-    const uint32_t ix = Index(tx, side), iy = Index(ty, side);
+    uint32_t ix, iy, fx, fy;
+    Locate(q, &ix, &iy, &fx, &fy);
     uint32_t c = cells[size_t{iy} * side + ix];
-    if (IsRefined(c)) {
-      c = cells[SubCell(c, Fraction(tx - ix), Fraction(ty - iy))];
-    }
+    if (IsRefined(c)) c = cells[SubCell(c, fx, fy)];
     return c != kNoVertex ? c : fallback;
-  }
-
-  // Row-major cell of q (clamped to the grid).
-  KINETRI_HD size_t Cell(const Vec2& q) const {
-    return size_t{Index((q.y - lo.y) * scale.y, side)} * side +
-           Index((q.x - lo.x) * scale.x, side);
   }
 
   // Where q lies in its cell: the cell index and the position within it
