@@ -22,6 +22,9 @@ namespace kinetri::core {
 namespace {
 
 struct Hit {
+  // Left uninitialized by resize(): rows are written in place.
+  Hit() {}
+  Hit(uint32_t e, double d) : ext(e), dist(d) {}
   uint32_t ext;
   double dist;
 };
@@ -587,6 +590,65 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
           bool knn = false;
           const bool direct = !options.closest_first;
           out.clear();
+          if (direct && max_results == 0) {
+            // Rows neither sorted nor cut: each run of slots is filtered
+            // without a branch on the outcome (a disk holds about 60 % of
+            // its candidates, a coin toss for the branch predictor). Sites
+            // near the circle (the exact predicate decides) and sites of
+            // several points take the slow path.
+            const Vec2* pos = cells->positions();
+            const uint32_t* exts = cells->exts();
+            const double dist_scale = options.distances ? 1.0 : 0.0;
+            cells->ForEachRun(q.q, r, [&](uint32_t b, uint32_t e) {
+              // In chunks: the row overshoots the budget by at most one
+              // chunk, and the token is polled between them.
+              constexpr uint32_t kChunk = 256;
+              for (uint32_t c = b; c < e; c += kChunk) {
+                const uint32_t ce = std::min(e, c + kChunk);
+                size_t m = out.size();
+                out.resize(m + (ce - c));
+                Hit* o = out.data();
+                for (uint32_t s = c; s < ce; ++s) {
+                  const double dw = SquaredDistance(q.q, pos[s]);
+                  const double tol = internal::kDistErrBound * (dw + rr);
+                  const uint32_t ext = exts[s];
+                  // Not near the circle (by twice the error bound: then
+                  // dw < rr - tol decides) and one point: no branch taken.
+                  if ((std::fabs(dw - rr) <= 2.0 * tol) | (ext == kNoVertex)) {
+                    if (!in_disk(pos[s], dw)) continue;
+                    out.resize(m);
+                    if (ext == kNoVertex) {
+                      EmitSite(v, cells->site(s), q.q, q.self_ext, out,
+                               options.distances);
+                    } else if (ext != q.self_ext) {
+                      out.push_back({ext, std::sqrt(dw) * dist_scale});
+                    }
+                    m = out.size();
+                    out.resize(m + (ce - s - 1));
+                    o = out.data();
+                    continue;
+                  }
+                  o[m] = {ext, options.distances ? std::sqrt(dw) : 0.0};
+                  m += (dw < rr - tol) & (ext != q.self_ext);
+                }
+                out.resize(m);
+                scanned += ce - c;
+                if (m > budget.cap) {
+                  end = kRowOverBudget;
+                  return false;
+                }
+                if (scanned >= RowBudget::kPollEvery) {
+                  scanned = 0;
+                  if (budget.Cancelled()) {
+                    end = kRowCancelled;
+                    return false;
+                  }
+                }
+              }
+              return true;
+            });
+            return end;
+          }
           cells->ForEachCandidate(
               q.q, r, [&](uint32_t w, const Vec2& p, uint32_t ext) {
                 if (++scanned % RowBudget::kPollEvery == 0 &&
