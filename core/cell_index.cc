@@ -30,7 +30,7 @@ struct Box {
 }  // namespace
 
 std::optional<CellIndex> CellIndex::Build(const TriangulationView& v,
-                                          double cell, size_t max_cells) {
+                                          double cell, const Limits& limits) {
   const uint32_t ns = v.num_sites;
   if (ns == 0 || !(cell > 0.0) || !std::isfinite(1.0 / cell)) {
     return std::nullopt;
@@ -50,34 +50,124 @@ std::optional<CellIndex> CellIndex::Build(const TriangulationView& v,
   g.inv_ = 1.0 / cell;
   const double cx = std::floor((box.hi_x - box.lo_x) * g.inv_) + 1.0;
   const double cy = std::floor((box.hi_y - box.lo_y) * g.inv_) + 1.0;
-  if (!(cx * cy <= static_cast<double>(max_cells))) return std::nullopt;
+  const double cells = cx * cy;
+  g.sparse_ = !(cells <= static_cast<double>(limits.max_dense_cells));
+  // Columns and rows are 32-bit in either form.
+  if (g.sparse_ && !(cells > static_cast<double>(limits.min_sparse_cells) &&
+                     cy <= static_cast<double>(limits.max_rows) &&
+                     cx < 0x1p31 && cy < 0x1p31)) {
+    return std::nullopt;
+  }
   g.x0_ = box.lo_x;
   g.y0_ = box.lo_y;
   g.nx_ = static_cast<uint32_t>(cx);
   g.ny_ = static_cast<uint32_t>(cy);
-  const size_t cells = g.num_cells();
-  // Counting sort of the sites (in their internal, Hilbert order, which
-  // each cell keeps) by cell.
-  std::vector<uint32_t> key(ns);
-  ParallelFor(0, ns, [&](size_t i) {
-    const Vec2& p = v.pos[v.sites[i]];
-    key[i] = static_cast<uint32_t>(size_t{g.Cell(p.y, g.y0_, g.ny_)} * g.nx_ +
-                                   g.Cell(p.x, g.x0_, g.nx_));
-  });
-  g.start_.assign(cells + 1, 0);
-  for (uint32_t k : key) ++g.start_[k + 1];
-  for (size_t c = 0; c < cells; ++c) g.start_[c + 1] += g.start_[c];
   g.site_.resize(ns);
   g.pos_.resize(ns);
   g.ext_.resize(ns);
-  std::vector<uint32_t> next(g.start_.begin(), g.start_.end() - 1);
-  for (uint32_t i = 0; i < ns; ++i) {
-    const uint32_t s = next[key[i]]++;
-    g.site_[s] = v.sites[i];
-    g.pos_[s] = v.pos[v.sites[i]];
-    g.ext_[s] = v.dup_next[v.sites[i]] == kNoVertex ? v.ext_of_int[v.sites[i]]
-                                                    : kNoVertex;
+  auto place = [&](uint32_t slot, uint32_t i) {
+    const uint32_t w = v.sites[i];
+    g.site_[slot] = w;
+    g.pos_[slot] = v.pos[w];
+    g.ext_[slot] = v.dup_next[w] == kNoVertex ? v.ext_of_int[w] : kNoVertex;
+  };
+  if (!g.sparse_) {
+    const size_t num_cells = size_t{g.nx_} * g.ny_;
+    // Counting sort of the sites (in their internal, Hilbert order, which
+    // each cell keeps) by cell.
+    std::vector<uint32_t> key(ns);
+    ParallelFor(0, ns, [&](size_t i) {
+      const Vec2& p = v.pos[v.sites[i]];
+      key[i] = static_cast<uint32_t>(size_t{g.Cell(p.y, g.y0_, g.ny_)} * g.nx_ +
+                                     g.Cell(p.x, g.x0_, g.nx_));
+    });
+    g.start_.assign(num_cells + 1, 0);
+    for (uint32_t k : key) ++g.start_[k + 1];
+    for (size_t c = 0; c < num_cells; ++c) g.start_[c + 1] += g.start_[c];
+    std::vector<uint32_t> next(g.start_.begin(), g.start_.end() - 1);
+    for (uint32_t i = 0; i < ns; ++i) place(next[key[i]]++, i);
+    double sum = 0.0;
+    for (size_t c = 0; c < num_cells; ++c) {
+      const double k = g.start_[c + 1] - g.start_[c];
+      sum += k * k;
+    }
+    g.occupancy_ = sum / ns;
+    return g;
   }
+  // Sparse: counting sort by row (internal order kept), then each row
+  // sorted by (column, internal order); the occupied cells are the runs of
+  // equal columns.
+  std::vector<uint32_t> row(ns), col(ns);
+  ParallelFor(0, ns, [&](size_t i) {
+    const Vec2& p = v.pos[v.sites[i]];
+    row[i] = g.Cell(p.y, g.y0_, g.ny_);
+    col[i] = g.Cell(p.x, g.x0_, g.nx_);
+  });
+  std::vector<uint32_t> row_start(size_t{g.ny_} + 1, 0);
+  for (uint32_t y : row) ++row_start[y + 1];
+  for (uint32_t y = 0; y < g.ny_; ++y) row_start[y + 1] += row_start[y];
+  std::vector<uint32_t> by_row(ns);
+  {
+    std::vector<uint32_t> next(row_start.begin(), row_start.end() - 1);
+    for (uint32_t i = 0; i < ns; ++i) by_row[next[row[i]]++] = i;
+  }
+  // Rows in blocks of about 4096 sites, sorted and placed in parallel;
+  // each row's occupied cells counted, then numbered in row order.
+  std::vector<uint32_t> row_cells(size_t{g.ny_} + 1, 0);
+  ParallelFor(
+      0, g.ny_,
+      [&](size_t y) {
+        const uint32_t b = row_start[y], e = row_start[y + 1];
+        if (b == e) return;
+        std::sort(by_row.begin() + b, by_row.begin() + e,
+                  [&](uint32_t i, uint32_t j) {
+                    return col[i] != col[j] ? col[i] < col[j] : i < j;
+                  });
+        uint32_t cells = 1;
+        for (uint32_t s = b + 1; s < e; ++s) {
+          cells += col[by_row[s]] != col[by_row[s - 1]];
+        }
+        row_cells[y + 1] = cells;
+      },
+      64);
+  for (uint32_t y = 0; y < g.ny_; ++y) row_cells[y + 1] += row_cells[y];
+  const uint32_t occupied = row_cells[g.ny_];
+  g.row_ = std::move(row_cells);
+  g.cell_x_.resize(occupied);
+  g.start_.resize(size_t{occupied} + 1);
+  g.start_[occupied] = ns;
+  std::vector<double> sums(g.ny_, 0.0);
+  ParallelFor(
+      0, g.ny_,
+      [&](size_t y) {
+        const uint32_t b = row_start[y], e = row_start[y + 1];
+        uint32_t c = g.row_[y];
+        uint32_t first = b;
+        double sum = 0.0;
+        for (uint32_t s = b; s < e; ++s) {
+          const uint32_t i = by_row[s];
+          place(s, i);
+          if (s == b || col[i] != col[by_row[s - 1]]) {
+            if (s != b) {
+              const double k = s - first;
+              sum += k * k;
+            }
+            g.cell_x_[c] = col[i];
+            g.start_[c] = s;
+            first = s;
+            ++c;
+          }
+        }
+        if (e != b) {
+          const double k = e - first;
+          sum += k * k;
+        }
+        sums[y] = sum;
+      },
+      64);
+  double sum = 0.0;
+  for (double x : sums) sum += x;
+  g.occupancy_ = sum / ns;
   return g;
 }
 

@@ -4,6 +4,12 @@
 // candidates of a disk are a few contiguous runs of memory instead of a
 // walk over neighbour rows. Used by the radius queries of core/queries.h
 // when disks hold more than a few sites (RowOptions::Plan).
+//
+// Where every cell of the bounding box fits the budget, the cells are
+// dense (a cell's slots found by its number). Where they do not (clustered
+// points: most of the box is empty at the scale of a cluster's radius),
+// only the occupied cells are kept, row by row and sorted by column, and a
+// row's run is found by binary search among its occupied cells.
 #ifndef KINETRI_CORE_CELL_INDEX_H_
 #define KINETRI_CORE_CELL_INDEX_H_
 
@@ -21,11 +27,26 @@ namespace kinetri::core {
 
 class CellIndex {
  public:
-  // The index of v's sites with cells of side `cell` (> 0); nullopt when it
-  // would need more than max_cells cells. Sorts in parallel: call inside
-  // the triangulation's thread arena.
+  // When each form may be built.
+  struct Limits {
+    // Dense when the box needs at most this many cells.
+    size_t max_dense_cells = 0;
+    // Otherwise sparse when the box needs more than this many cells (so a
+    // box that fits neither form is refused before any sorting) and has at
+    // most max_rows rows (0: never sparse).
+    size_t min_sparse_cells = 0;
+    size_t max_rows = 0;
+  };
+  // The index of v's sites with cells of side `cell` (> 0), or nullopt when
+  // `limits` allow neither form (decided before sorting). Sorts in
+  // parallel: call inside the triangulation's thread arena.
   static std::optional<CellIndex> Build(const TriangulationView& v, double cell,
-                                        size_t max_cells);
+                                        const Limits& limits);
+
+  // Sites per occupied cell, as a site sees it (the mean over sites of the
+  // count of their own cell).
+  double occupancy() const { return occupancy_; }
+  bool sparse() const { return sparse_; }
 
   // Calls fn(begin, end) for runs of slots [begin, end) that together hold
   // every site within r of q (a superset, whatever the rounding): per row
@@ -66,8 +87,19 @@ class CellIndex {
       const uint32_t x0 = Cell(q.x - half - slack_x, x0_, nx_);
       const uint32_t x1 = Cell(q.x + half + slack_x, x0_, nx_);
       // The cells x0..x1 of a row are one contiguous run of slots.
-      const uint32_t b = start_[size_t{y} * nx_ + x0];
-      const uint32_t e = start_[size_t{y} * nx_ + x1 + 1];
+      uint32_t b, e;
+      if (!sparse_) {
+        b = start_[size_t{y} * nx_ + x0];
+        e = start_[size_t{y} * nx_ + x1 + 1];
+      } else {
+        const uint32_t* first = cell_x_.data() + row_[y];
+        const uint32_t* last = cell_x_.data() + row_[y + 1];
+        if (first == last) continue;
+        const uint32_t* k0 = std::lower_bound(first, last, x0);
+        const uint32_t* k1 = std::upper_bound(k0, last, x1);
+        b = start_[k0 - cell_x_.data()];
+        e = start_[k1 - cell_x_.data()];
+      }
       if (b != e && !fn(b, e)) return;
     }
   }
@@ -89,7 +121,8 @@ class CellIndex {
   const Vec2* positions() const { return pos_.data(); }
   const uint32_t* exts() const { return ext_.data(); }
 
-  size_t num_cells() const { return size_t{nx_} * ny_; }
+  // Cells of the box (dense) or occupied cells (sparse).
+  size_t num_cells() const { return start_.size() - 1; }
 
  private:
   uint32_t Cell(double c, double origin, uint32_t count) const {
@@ -101,10 +134,16 @@ class CellIndex {
 
   double x0_ = 0.0, y0_ = 0.0, inv_ = 1.0;
   uint32_t nx_ = 1, ny_ = 1;
-  std::vector<uint32_t> start_;  // cell c: slots start_[c] .. start_[c + 1]
-  std::vector<uint32_t> site_;   // site (internal id) of each slot
-  std::vector<Vec2> pos_;        // its position
-  std::vector<uint32_t> ext_;    // its only point's external id (or none)
+  bool sparse_ = false;
+  double occupancy_ = 0.0;
+  // Cell c: slots start_[c] .. start_[c + 1]. Dense: c = y * nx_ + x.
+  // Sparse: the occupied cells of row y are row_[y] .. row_[y + 1], in
+  // increasing column cell_x_[c].
+  std::vector<uint32_t> start_;
+  std::vector<uint32_t> row_, cell_x_;
+  std::vector<uint32_t> site_;  // site (internal id) of each slot
+  std::vector<Vec2> pos_;       // its position
+  std::vector<uint32_t> ext_;   // its only point's external id (or none)
 };
 
 }  // namespace kinetri::core

@@ -501,20 +501,31 @@ std::shared_ptr<const CellIndex> RadiusCells(const Triangulation& t, double r,
     return nullptr;
   }
   const TriangulationView v = t.view();
-  // At most about four cells per site (the index's memory stays O(n));
-  // kAuto also wants the disks to hold kCellsMinSitesPerDisk sites at the
-  // mean density over the cells, i.e. at most pi / that many cells per
-  // site. The index gives up before sorting when it would need more.
-  size_t max_cells = 4 * size_t{v.num_sites} + 64;
+  // At most about four cells (or rows) per site: the index's memory stays
+  // O(n). kAuto also wants the disks to hold kCellsMinSitesPerDisk sites:
+  // at the mean density over the box, i.e. at most pi / that many cells per
+  // site, for a dense index; counted over the occupied cells, as the sites
+  // see them, for a sparse one (clustered points), which kAuto builds only
+  // where a dense one would not fit at all. The index gives up before
+  // sorting when neither form is allowed.
+  const size_t memory_cells = 4 * size_t{v.num_sites} + 64;
+  CellIndex::Limits limits;
+  limits.max_dense_cells = memory_cells;
+  limits.min_sparse_cells = memory_cells;
+  limits.max_rows = memory_cells;
   if (options.plan == Plan::kAuto) {
-    max_cells = std::min<size_t>(
-        max_cells, static_cast<size_t>(double(v.num_sites) * 3.14159 /
-                                       kCellsMinSitesPerDisk));
+    limits.max_dense_cells = std::min<size_t>(
+        memory_cells, static_cast<size_t>(double(v.num_sites) * 3.14159 /
+                                          kCellsMinSitesPerDisk));
   }
   auto build = [&]() -> std::shared_ptr<const CellIndex> {
     std::optional<CellIndex> cells;
-    t.Run([&] { cells = CellIndex::Build(v, r, max_cells); });
+    t.Run([&] { cells = CellIndex::Build(v, r, limits); });
     if (!cells) return nullptr;
+    if (options.plan == Plan::kAuto && cells->sparse() &&
+        cells->occupancy() * 3.14159 < kCellsMinSitesPerDisk) {
+      return nullptr;
+    }
     return std::make_shared<const CellIndex>(*std::move(cells));
   };
   if (options.plan == Plan::kCells) return build();
@@ -592,7 +603,7 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
           out.clear();
           if (direct && max_results == 0) {
             // Rows neither sorted nor cut: each run of slots is filtered
-            // without a branch on the outcome (a disk holds about 60 % of
+            // without a branch on the outcome (a disk holds under half of
             // its candidates, a coin toss for the branch predictor). Sites
             // near the circle (the exact predicate decides) and sites of
             // several points take the slow path.

@@ -1,0 +1,157 @@
+// The cell index of radius queries (core/cell_index.h): in both forms
+// (dense cells, and the occupied cells of each row for clustered points)
+// the runs of a disk hold every site within r of the query, whatever the
+// rounding, and little else; the limits decide the form before sorting.
+#include "core/cell_index.h"
+
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <random>
+#include <vector>
+
+#include "core/predicates.h"
+#include "core/triangulation.h"
+#include "tests/core/test_util.h"
+
+namespace kinetri::core {
+namespace {
+
+CellIndex::Limits Dense() {
+  CellIndex::Limits l;
+  l.max_dense_cells = SIZE_MAX;
+  return l;
+}
+CellIndex::Limits Sparse() {
+  CellIndex::Limits l;
+  l.max_dense_cells = 0;
+  l.max_rows = SIZE_MAX;
+  return l;
+}
+
+// Sites within r of q (exact) from the index's runs, sorted; *scanned
+// counts the candidates.
+std::vector<uint32_t> FromRuns(const CellIndex& g, const Vec2& q, double r,
+                               size_t* scanned) {
+  std::vector<uint32_t> out;
+  g.ForEachRun(q, r, [&](uint32_t b, uint32_t e) {
+    EXPECT_LT(b, e);
+    *scanned += e - b;
+    for (uint32_t s = b; s < e; ++s) {
+      if (CompareDistanceToRadius(q, g.positions()[s], r) <= 0) {
+        out.push_back(g.site(s));
+      }
+    }
+    return true;
+  });
+  std::sort(out.begin(), out.end());
+  return out;
+}
+
+std::vector<uint32_t> Brute(const TriangulationView& v, const Vec2& q,
+                            double r) {
+  std::vector<uint32_t> out;
+  for (uint32_t i = 0; i < v.num_sites; ++i) {
+    if (CompareDistanceToRadius(q, v.pos[v.sites[i]], r) <= 0) {
+      out.push_back(v.sites[i]);
+    }
+  }
+  std::sort(out.begin(), out.end());
+  return out;
+}
+
+void CheckBothForms(const std::vector<Vec2>& pts,
+                    const std::vector<double>& radii, uint64_t seed) {
+  auto t = Triangulation::Create(pts);
+  ASSERT_TRUE(t.ok());
+  const TriangulationView v = t->view();
+  std::mt19937_64 rng(seed);
+  std::uniform_int_distribution<size_t> pick(0, pts.size() - 1);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  for (double r : radii) {
+    const auto dense = CellIndex::Build(v, r, Dense());
+    const auto sparse = CellIndex::Build(v, r, Sparse());
+    ASSERT_TRUE(dense && sparse) << "r=" << r;
+    EXPECT_FALSE(dense->sparse());
+    EXPECT_TRUE(sparse->sparse());
+    // The same cells, so the same mean occupancy; never more cells kept
+    // than sites in the sparse form.
+    EXPECT_DOUBLE_EQ(dense->occupancy(), sparse->occupancy());
+    EXPECT_LE(sparse->num_cells(), v.num_sites);
+    size_t scanned_dense = 0, scanned_sparse = 0, found = 0;
+    for (int k = 0; k < 300; ++k) {
+      // Queries at sites, next to them, on cell borders and far outside.
+      Vec2 q = pts[pick(rng)];
+      if (k % 3 == 1) q = {q.x + r * u(rng), q.y + r * u(rng)};
+      if (k % 7 == 2) q = {q.x + r, q.y - r};
+      if (k % 31 == 5) q = {q.x + 50 * r * u(rng), q.y - 1e3 * r};
+      // Radii exactly reaching a site: boundary cases of the chords.
+      double rq = r;
+      if (k % 5 == 3) {
+        const Vec2 p = pts[pick(rng)];
+        rq = std::hypot(p.x - q.x, p.y - q.y);
+        if (!(rq > 0.0) || rq > 4 * r) rq = r;
+      }
+      const auto want = Brute(v, q, rq);
+      ASSERT_EQ(FromRuns(*dense, q, rq, &scanned_dense), want)
+          << "dense r=" << rq << " q=" << q.x << "," << q.y;
+      ASSERT_EQ(FromRuns(*sparse, q, rq, &scanned_sparse), want)
+          << "sparse r=" << rq << " q=" << q.x << "," << q.y;
+      found += want.size();
+    }
+    // Both forms scan the same cells.
+    EXPECT_EQ(scanned_dense, scanned_sparse) << "r=" << r;
+    EXPECT_GT(found, 0u);
+  }
+}
+
+TEST(CellIndex, BothFormsFindEveryDiskUniform) {
+  CheckBothForms(testing::UniformPoints(3000, 1), {0.004, 0.02, 0.05, 0.3}, 2);
+}
+
+TEST(CellIndex, BothFormsFindEveryDiskClustered) {
+  CheckBothForms(testing::ClusteredPoints(3000, 3), {1e-4, 0.003, 0.02}, 4);
+}
+
+TEST(CellIndex, BothFormsFindEveryDiskOnALattice) {
+  // Cocircular sites, and sites exactly on cell borders.
+  CheckBothForms(testing::Lattice(40), {1.0, 2.0, 2.5, 7.0}, 5);
+}
+
+TEST(CellIndex, BothFormsFindEveryDiskFarFromTheOrigin) {
+  CheckBothForms(testing::UniformPoints(2000, 6, 1.0, 1e9), {0.01, 0.05}, 7);
+  CheckBothForms(testing::UniformPoints(2000, 8, 1e-9), {1e-11, 5e-11}, 9);
+}
+
+TEST(CellIndex, LimitsDecideTheForm) {
+  const auto pts = testing::ClusteredPoints(2000, 10);
+  auto t = Triangulation::Create(pts);
+  ASSERT_TRUE(t.ok());
+  const TriangulationView v = t->view();
+  const double r = 1e-3;  // the box needs about 10^6 cells
+  CellIndex::Limits l;
+  l.max_dense_cells = 4 * 2000 + 64;
+  l.min_sparse_cells = l.max_dense_cells;
+  l.max_rows = l.max_dense_cells;
+  const auto g = CellIndex::Build(v, r, l);
+  ASSERT_TRUE(g);
+  EXPECT_TRUE(g->sparse());
+  // Clustered: a site sees many more sites in its cell than the mean
+  // density over the box would put there.
+  EXPECT_GT(g->occupancy(), 1.0);
+  // Too many rows, or a box that would fit the dense form after all.
+  l.max_rows = 100;
+  EXPECT_FALSE(CellIndex::Build(v, r, l));
+  l.max_rows = SIZE_MAX;
+  l.min_sparse_cells = SIZE_MAX;
+  EXPECT_FALSE(CellIndex::Build(v, r, l));
+  // A large radius fits the dense form.
+  const auto d = CellIndex::Build(v, 0.1, l);
+  ASSERT_TRUE(d);
+  EXPECT_FALSE(d->sparse());
+}
+
+}  // namespace
+}  // namespace kinetri::core
