@@ -5,6 +5,7 @@
 #include <atomic>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <memory>
 #include <mutex>
 #include <optional>
@@ -199,6 +200,18 @@ std::vector<uint32_t> OrderByKey(const std::vector<uint32_t>& keys,
 // is checked against max_total_results and admitted in one call up front,
 // and rows are written straight into the answer. Otherwise rows go to
 // per-block buffers, admitted as they grow, then into the answer.
+// Copies a row of ids: rows are short (a call to memmove per row of 8
+// cost more than the copy), so in fixed blocks of 8 that the compiler
+// inlines, then one by one.
+inline void CopyIds(const uint32_t* from, uint64_t len, uint32_t* to) {
+  uint64_t k = 0;
+  for (; k + 8 <= len; k += 8) std::memcpy(to + k, from + k, 8 * sizeof(*to));
+  for (; k < len; ++k) {
+    asm("" ::: "memory");  // keeps this loop from becoming a memmove call
+    to[k] = from[k];
+  }
+}
+
 template <typename RowFn>
 absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
                                       const std::vector<Query>& queries,
@@ -406,8 +419,8 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
     const uint64_t len = out.offsets[i + 1] - out.offsets[i];
     if (len == 0) return;
     const uint32_t j = slot_of[i];
-    std::copy_n(block_ids[j / kBlock].begin() + row_start[j], len,
-                out.ids.begin() + out.offsets[i]);
+    CopyIds(block_ids[j / kBlock].data() + row_start[j], len,
+            out.ids.data() + out.offsets[i]);
     if (distances) {
       std::copy_n(block_dist[j / kBlock].begin() + row_start[j], len,
                   out.distances.begin() + out.offsets[i]);
