@@ -250,10 +250,12 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
   const size_t rows_kept = width > 0 ? 0 : nq;
   std::vector<uint64_t> row_size(rows_kept, 0);
   std::vector<uint8_t> truncated(rows_kept, 0);
-  // Slot of each request in processing order, and where the row of each
-  // slot starts in its block's buffer (block = slot / kBlock).
-  std::vector<uint32_t> slot_of(rows_kept, 0);
+  // Where the row of each slot (processing order) starts in its block's
+  // buffer (block = slot / kBlock), and then where the row of each request
+  // is, so that the final copy reads one address per row.
   std::vector<uint64_t> row_start(rows_kept, 0);
+  std::vector<const uint32_t*> ids_of(rows_kept, nullptr);
+  std::vector<const double*> dist_of(distances ? rows_kept : 0, nullptr);
   std::atomic<uint64_t> total{0};
   std::atomic<bool> stop{false}, exceeded{false};
   // limits.admit, one call at a time: what it granted, and its refusal.
@@ -385,7 +387,9 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
           1);
       ParallelFor(0, rows_kept, [&](size_t j) {
         const uint32_t i = order[j];
-        slot_of[i] = static_cast<uint32_t>(j);
+        ids_of[i] = block_ids[j / kBlock].data() + row_start[j];
+        if (distances)
+          dist_of[i] = block_dist[j / kBlock].data() + row_start[j];
         row_size[i] = sorted_size[j];
         truncated[i] = sorted_truncated[j];
       });
@@ -415,15 +419,16 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
   }
   out.ids.resize(out.offsets[nq]);
   if (distances) out.distances.resize(out.offsets[nq]);
+  // Rows lie in their blocks in processing order: each one is a cache miss,
+  // fetched ahead.
+  constexpr size_t kAhead = 16;
   ParallelFor(0, nq, [&](size_t i) {
+    if (i + kAhead < nq) __builtin_prefetch(ids_of[i + kAhead]);
     const uint64_t len = out.offsets[i + 1] - out.offsets[i];
     if (len == 0) return;
-    const uint32_t j = slot_of[i];
-    CopyIds(block_ids[j / kBlock].data() + row_start[j], len,
-            out.ids.data() + out.offsets[i]);
+    CopyIds(ids_of[i], len, out.ids.data() + out.offsets[i]);
     if (distances) {
-      std::copy_n(block_dist[j / kBlock].begin() + row_start[j], len,
-                  out.distances.begin() + out.offsets[i]);
+      std::copy_n(dist_of[i], len, out.distances.begin() + out.offsets[i]);
     }
   });
   out.truncated = std::move(truncated);
