@@ -50,8 +50,10 @@ class CellIndex {
 
   // Calls fn(begin, end) for runs of slots [begin, end) that together hold
   // every site within r of q (a superset, whatever the rounding): per row
-  // of cells, the cells that meet the disk's chord over that row, which are
-  // one contiguous run. fn returns false to stop. The sites of a slot are
+  // of cells meeting the square [q - r, q + r]^2, its cells in that square,
+  // which are one contiguous run. (Clipping each row to the disk's chord
+  // skipped about 9 % of the candidates at cell side r and cost more in
+  // square roots.) fn returns false to stop. The sites of a slot are
   // site(s), position(s) and ext(s).
   template <typename Fn>
   void ForEachRun(const Vec2& q, double r, Fn&& fn) const {
@@ -59,33 +61,11 @@ class CellIndex {
     // site of the disk falls outside them.
     const double slack_x = (std::fabs(q.x) + r) * 0x1p-50;
     const double slack_y = (std::fabs(q.y) + r) * 0x1p-50;
+    const uint32_t x0 = Cell(q.x - r - slack_x, x0_, nx_);
+    const uint32_t x1 = Cell(q.x + r + slack_x, x0_, nx_);
     const uint32_t y0 = Cell(q.y - r - slack_y, y0_, ny_);
     const uint32_t y1 = Cell(q.y + r + slack_y, y0_, ny_);
-    // Where a row of cells begins and ends, widened by more than the error
-    // of binning a site (in cells: the relative error of (y - y0_) * inv_).
-    const double band_slack =
-        1e-6 + (std::fabs(q.y) + std::fabs(y0_) + r) * inv_ * 0x1p-44;
-    const double cell = 1.0 / inv_;
     for (uint32_t y = y0; y <= y1; ++y) {
-      // The least |dy| from q to a site binned in row y (rows at the edge
-      // of the grid also hold the sites clamped into them).
-      double dy = 0.0;
-      const double lo =
-          y == 0 ? -INFINITY
-                 : y0_ + (static_cast<double>(y) - band_slack) * cell;
-      const double hi =
-          y + 1 == ny_
-              ? INFINITY
-              : y0_ + (static_cast<double>(y) + 1.0 + band_slack) * cell;
-      if (q.y < lo) dy = lo - q.y;
-      if (q.y > hi) dy = q.y - hi;
-      dy *= 1.0 - 0x1p-40;
-      // Half the chord at that height; (r - dy) (r + dy) loses no digits
-      // when dy is close to r.
-      const double h2 = dy < r ? (r - dy) * (r + dy) : 0.0;
-      const double half = std::sqrt(h2) * (1.0 + 0x1p-40);
-      const uint32_t x0 = Cell(q.x - half - slack_x, x0_, nx_);
-      const uint32_t x1 = Cell(q.x + half + slack_x, x0_, nx_);
       // The cells x0..x1 of a row are one contiguous run of slots.
       uint32_t b, e;
       if (!sparse_) {

@@ -10,6 +10,7 @@
 #include <mutex>
 #include <optional>
 #include <queue>
+#include <type_traits>
 
 #include "absl/container/flat_hash_set.h"
 #include "absl/strings/str_cat.h"
@@ -635,39 +636,53 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
             // several points take the slow path.
             const Vec2* pos = cells->positions();
             const uint32_t* exts = cells->exts();
-            const double dist_scale = options.distances ? 1.0 : 0.0;
+            // Squared distances below `inside` are within r for certain,
+            // above `outside` beyond it: across the band the error bound of
+            // in_disk, kDistErrBound (dw + rr), stays below 3 kDistErrBound
+            // rr, with room for the rounding of these two products.
+            const double inside = rr * (1.0 - 3.0 * internal::kDistErrBound);
+            const double outside = rr * (1.0 + 3.0 * internal::kDistErrBound);
+            // One run of candidates into out from slot c (the row holds m
+            // results), without a branch on the outcome; returns m.
+            auto filter = [&](uint32_t c, uint32_t ce, size_t m,
+                              auto with_distances) {
+              out.resize(m + (ce - c));
+              Hit* o = out.data();
+              for (uint32_t s = c; s < ce; ++s) {
+                const double dw = SquaredDistance(q.q, pos[s]);
+                const uint32_t ext = exts[s];
+                if (((dw >= inside) & (dw <= outside)) | (ext == kNoVertex)) {
+                  if (!in_disk(pos[s], dw)) continue;
+                  out.resize(m);
+                  if (ext == kNoVertex) {
+                    EmitSite(v, cells->site(s), q.q, q.self_ext, out,
+                             options.distances);
+                  } else if (ext != q.self_ext) {
+                    out.push_back({ext, with_distances ? std::sqrt(dw) : 0.0});
+                  }
+                  m = out.size();
+                  out.resize(m + (ce - s - 1));
+                  o = out.data();
+                  continue;
+                }
+                o[m].ext = ext;
+                if constexpr (decltype(with_distances)::value) {
+                  o[m].dist = std::sqrt(dw);
+                }
+                m += (dw < inside) & (ext != q.self_ext);
+              }
+              return m;
+            };
             cells->ForEachRun(q.q, r, [&](uint32_t b, uint32_t e) {
               // In chunks: the row overshoots the budget by at most one
               // chunk, and the token is polled between them.
               constexpr uint32_t kChunk = 256;
               for (uint32_t c = b; c < e; c += kChunk) {
                 const uint32_t ce = std::min(e, c + kChunk);
-                size_t m = out.size();
-                out.resize(m + (ce - c));
-                Hit* o = out.data();
-                for (uint32_t s = c; s < ce; ++s) {
-                  const double dw = SquaredDistance(q.q, pos[s]);
-                  const double tol = internal::kDistErrBound * (dw + rr);
-                  const uint32_t ext = exts[s];
-                  // Not near the circle (by twice the error bound: then
-                  // dw < rr - tol decides) and one point: no branch taken.
-                  if ((std::fabs(dw - rr) <= 2.0 * tol) | (ext == kNoVertex)) {
-                    if (!in_disk(pos[s], dw)) continue;
-                    out.resize(m);
-                    if (ext == kNoVertex) {
-                      EmitSite(v, cells->site(s), q.q, q.self_ext, out,
-                               options.distances);
-                    } else if (ext != q.self_ext) {
-                      out.push_back({ext, std::sqrt(dw) * dist_scale});
-                    }
-                    m = out.size();
-                    out.resize(m + (ce - s - 1));
-                    o = out.data();
-                    continue;
-                  }
-                  o[m] = {ext, options.distances ? std::sqrt(dw) : 0.0};
-                  m += (dw < rr - tol) & (ext != q.self_ext);
-                }
+                const size_t m =
+                    options.distances
+                        ? filter(c, ce, out.size(), std::true_type{})
+                        : filter(c, ce, out.size(), std::false_type{});
                 out.resize(m);
                 scanned += ce - c;
                 if (m > budget.cap) {
