@@ -15,7 +15,7 @@ from collections import defaultdict
 ENGINES = ["kinetri", "kinetri-1t", "kinetri-rounds", "kinetri-device",
            "cgal-rebuild", "cgal-move", "grid", "grid-device", "nanoflann"]
 PHASES = ["update", "all_nn", "knn8", "radius8", "radius32", "points_nn",
-          "points_radius8"]
+          "points_knn8", "points_radius8"]
 
 
 def index(recs, n):
@@ -69,6 +69,22 @@ def goals(table, n):
                      ratio(med(table, *load, "knn8", "kinetri"),
                            add(med(table, *load, "update", "nanoflann"),
                                med(table, *load, "knn8", "nanoflann")))))
+    # Issue 15 (queries), on every workload of the run.
+    loads = sorted({(w, p) for (w, p, _) in table})
+    for load in loads:
+        name = f"{load[0]} {load[1]:g}"
+        rows.append((f"15. radius (8), {name}: Kinetri / grid", "< 1",
+                     ratio(med(table, *load, "radius8", "kinetri"),
+                           med(table, *load, "radius8", "grid"))))
+        if load[0] != "clustered":
+            rows.append((f"15. radius (32), {name}: Kinetri / grid", "<= 1.2",
+                         ratio(med(table, *load, "radius32", "kinetri"),
+                               med(table, *load, "radius32", "grid"))))
+        for phase in ("points_nn", "points_knn8", "points_radius8"):
+            rows.append((f"15. {phase} (positions), {name}: "
+                         "Kinetri / nanoflann query alone", "< 1",
+                         ratio(med(table, *load, phase, "kinetri"),
+                               med(table, *load, phase, "nanoflann"))))
     print(f"\nGoals at n = {n} (ratios of medians from this run):\n")
     print("| goal | target | measured |")
     print("|---|---:|---:|")

@@ -149,13 +149,18 @@ std::vector<uint32_t> GridEngine::AllNearest() const { return AllKNearest(1); }
 
 std::vector<uint32_t> GridEngine::NearestOf(
     const std::vector<core::Vec2>& qs) const {
-  std::vector<uint32_t> out(qs.size(), UINT32_MAX);
+  return KNearestOf(qs, 1);
+}
+
+std::vector<uint32_t> GridEngine::KNearestOf(const std::vector<core::Vec2>& qs,
+                                             int k) const {
+  std::vector<uint32_t> out(qs.size() * k, UINT32_MAX);
   const std::vector<uint32_t> order = CellOrder(qs);
   core::ParallelFor(
       0, qs.size(),
       [&](size_t s) {
         const uint32_t i = order[s];
-        KNearestOne(qs[i], UINT32_MAX, 1, &out[i]);
+        KNearestOne(qs[i], UINT32_MAX, k, &out[size_t{i} * k]);
       },
       256);
   return out;

@@ -27,6 +27,9 @@ class GridEngine {
                        std::vector<uint32_t>* ids) const;
   // Nearest point of each query position.
   std::vector<uint32_t> NearestOf(const std::vector<core::Vec2>& qs) const;
+  // k nearest points of each query position, closest first (k per row).
+  std::vector<uint32_t> KNearestOf(const std::vector<core::Vec2>& qs,
+                                   int k) const;
   // Points within r of each query position (CSR).
   void WithinRadiusOf(const std::vector<core::Vec2>& qs, double r,
                       std::vector<uint64_t>* offsets,

@@ -174,10 +174,11 @@ using kinetri::bench::NanoTree;
 
 // Answers of one engine for the cross-check: per point, the squared
 // distances of its k nearest others and its radius counts; per query point,
-// the squared distance to its nearest point and its radius count; for the
+// the squared distances to its nearest and 8 nearest points and its radius
+// count; for the
 // CGAL engines, the Delaunay edge set.
 struct Answers {
-  std::vector<double> nn_d2, knn_d2, qnn_d2;
+  std::vector<double> nn_d2, knn_d2, qnn_d2, qknn_d2;
   std::vector<uint64_t> r8_count, r32_count, qr8_count;
   std::vector<std::pair<uint32_t, uint32_t>> edges;
 };
@@ -503,9 +504,13 @@ int main(int argc, char** argv) {
           auto pnn = kc::Nearest(*t, qs);
           rec(e, "points_nn", Ms(t0));
           t0 = Clock::now();
+          auto pknn = kc::KNearest(*t, qs, 8);
+          rec(e, "points_knn8", Ms(t0));
+          t0 = Clock::now();
           auto pr8 = kc::WithinRadius(*t, qs, r8, 0, {}, set_only);
           rec(e, "points_radius8", Ms(t0));
-          if (!knn.ok() || !q8.ok() || !q32.ok() || !pnn.ok() || !pr8.ok()) {
+          if (!knn.ok() || !q8.ok() || !q32.ok() || !pnn.ok() || !pknn.ok() ||
+              !pr8.ok()) {
             std::fprintf(stderr, "%s %g n=%zu: %s: a query failed\n",
                          wname.c_str(), param, n, e.c_str());
             failed[e] = any_failed = true;
@@ -520,6 +525,8 @@ int main(int argc, char** argv) {
             }
             for (size_t i = 0; i < qs.size(); ++i) {
               a.qnn_d2.push_back(D2(qs[i], pos[pnn->ids[pnn->offsets[i]]]));
+              for (uint64_t k = pknn->offsets[i]; k < pknn->offsets[i + 1]; ++k)
+                a.qknn_d2.push_back(D2(qs[i], pos[pknn->ids[k]]));
               a.qr8_count.push_back(pr8->row_size(i));
             }
           }
@@ -553,6 +560,9 @@ int main(int argc, char** argv) {
           t0 = Clock::now();
           auto pnn = grid.NearestOf(qs);
           rec("grid", "points_nn", Ms(t0));
+          t0 = Clock::now();
+          auto pknn = grid.KNearestOf(qs, 8);
+          rec("grid", "points_knn8", Ms(t0));
           // Radius phases rebuild the grid with cell = r (its best case).
           std::vector<uint64_t> off8, off32, offq;
           std::vector<uint32_t> ids8, ids32, idsq;
@@ -580,6 +590,8 @@ int main(int argc, char** argv) {
             }
             for (size_t i = 0; i < qs.size(); ++i) {
               a.qnn_d2.push_back(D2(qs[i], pos[pnn[i]]));
+              for (int k = 0; k < 8; ++k)
+                a.qknn_d2.push_back(D2(qs[i], pos[pknn[8 * i + k]]));
               a.qr8_count.push_back(offq[i + 1] - offq[i]);
             }
           }
@@ -679,6 +691,17 @@ int main(int argc, char** argv) {
               },
               256);
           rec("nanoflann", "points_nn", Ms(t0));
+          std::vector<uint32_t> pknn(8 * qs.size());
+          t0 = Clock::now();
+          kc::ParallelFor(
+              0, qs.size(),
+              [&](size_t i) {
+                double d2[8];
+                const double q[2] = {qs[i].x, qs[i].y};
+                tree.knnSearch(q, 8, &pknn[8 * i], d2);
+              },
+              256);
+          rec("nanoflann", "points_knn8", Ms(t0));
           t0 = Clock::now();
           radius(qs, r8, false, &cq);
           rec("nanoflann", "points_radius8", Ms(t0));
@@ -693,6 +716,8 @@ int main(int argc, char** argv) {
             }
             for (size_t i = 0; i < qs.size(); ++i) {
               a.qnn_d2.push_back(D2(qs[i], pos[pnn[i]]));
+              for (int k = 0; k < 8; ++k)
+                a.qknn_d2.push_back(D2(qs[i], pos[pknn[8 * i + k]]));
               a.qr8_count.push_back(cq[i]);
             }
           }
@@ -712,6 +737,7 @@ int main(int argc, char** argv) {
             same(a.r8_count, ref.r8_count);
             same(a.r32_count, ref.r32_count);
             same(a.qnn_d2, ref.qnn_d2);
+            same(a.qknn_d2, ref.qknn_d2);
             same(a.qr8_count, ref.qr8_count);
             if (e.rfind("cgal", 0) == 0) ok &= a.edges == kedges;
             if (!ok) {
