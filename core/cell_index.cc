@@ -115,7 +115,7 @@ std::optional<CellIndex> CellIndex::Build(const TriangulationView& v,
     std::vector<uint32_t> next(row_start.begin(), row_start.end() - 1);
     for (uint32_t i = 0; i < ns; ++i) by_row[next[row[i]]++] = i;
   }
-  // Rows in blocks of about 4096 sites, sorted and placed in parallel;
+  // Rows sorted and placed in parallel (64 rows per task);
   // each row's occupied cells counted, then numbered in row order.
   std::vector<uint32_t> row_cells(size_t{g.ny_} + 1, 0);
   ParallelFor(

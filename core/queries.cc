@@ -195,12 +195,6 @@ std::vector<uint32_t> OrderByKey(const std::vector<uint32_t>& keys,
   return order;
 }
 
-// Rows of every query by row_fn. `width` > 0 promises that every complete
-// row has exactly that many results (k-NN of a set with more than k
-// points): the answer's size is then known before any row is built, so it
-// is checked against max_total_results and admitted in one call up front,
-// and rows are written straight into the answer. Otherwise rows go to
-// per-block buffers, admitted as they grow, then into the answer.
 // Copies a row of ids: rows are short (a call to memmove per row of 8
 // cost more than the copy), so in fixed blocks of 8 that the compiler
 // inlines, then one by one.
@@ -213,6 +207,12 @@ inline void CopyIds(const uint32_t* from, uint64_t len, uint32_t* to) {
   }
 }
 
+// Rows of every query by row_fn. `width` > 0 promises that every complete
+// row has exactly that many results (k-NN of a set with more than k
+// points): the answer's size is then known before any row is built, so it
+// is checked against max_total_results and admitted in one call up front,
+// and rows are written straight into the answer. Otherwise rows go to
+// per-block buffers, admitted as they grow, then into the answer.
 template <typename RowFn>
 absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
                                       const std::vector<Query>& queries,
@@ -533,8 +533,10 @@ std::shared_ptr<const CellIndex> RadiusCells(const Triangulation& t, double r,
   // at the mean density over the box, i.e. at most pi / that many cells per
   // site, for a dense index; counted over the occupied cells, as the sites
   // see them, for a sparse one (clustered points), which kAuto builds only
-  // where a dense one would not fit at all. The index gives up before
-  // sorting when neither form is allowed.
+  // where a dense one would not fit at all (between the two, kAuto walks
+  // the graph). The index gives up before sorting when neither form is
+  // allowed; a sparse one is judged after it is built (the decision is
+  // cached for the step and radius).
   const size_t memory_cells = 4 * size_t{v.num_sites} + 64;
   CellIndex::Limits limits;
   limits.max_dense_cells = memory_cells;
@@ -643,7 +645,8 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
             const double inside = rr * (1.0 - 3.0 * internal::kDistErrBound);
             const double outside = rr * (1.0 + 3.0 * internal::kDistErrBound);
             // One run of candidates into out from slot c (the row holds m
-            // results), without a branch on the outcome; returns m.
+            // results), without a branch on the outcome; returns m. (Both
+            // fields are written: the vector may copy the slot.)
             auto filter = [&](uint32_t c, uint32_t ce, size_t m,
                               auto with_distances) {
               out.resize(m + (ce - c));
@@ -665,17 +668,15 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
                   o = out.data();
                   continue;
                 }
-                o[m].ext = ext;
-                if constexpr (decltype(with_distances)::value) {
-                  o[m].dist = std::sqrt(dw);
-                }
+                o[m] = {ext, with_distances ? std::sqrt(dw) : 0.0};
                 m += (dw < inside) & (ext != q.self_ext);
               }
               return m;
             };
             cells->ForEachRun(q.q, r, [&](uint32_t b, uint32_t e) {
               // In chunks: the row overshoots the budget by at most one
-              // chunk, and the token is polled between them.
+              // chunk's sites (the points of each), and the token is polled
+              // between them.
               constexpr uint32_t kChunk = 256;
               for (uint32_t c = b; c < e; c += kChunk) {
                 const uint32_t ce = std::min(e, c + kChunk);

@@ -87,7 +87,7 @@ void CheckBothForms(const std::vector<Vec2>& pts,
       if (k % 3 == 1) q = {q.x + r * u(rng), q.y + r * u(rng)};
       if (k % 7 == 2) q = {q.x + r, q.y - r};
       if (k % 31 == 5) q = {q.x + 50 * r * u(rng), q.y - 1e3 * r};
-      // Radii exactly reaching a site: boundary cases of the chords.
+      // Radii exactly reaching a site: sites on the circle.
       double rq = r;
       if (k % 5 == 3) {
         const Vec2 p = pts[pick(rng)];

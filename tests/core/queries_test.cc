@@ -132,6 +132,25 @@ void CheckAllQueries(const std::vector<Vec2>& pts, uint64_t seed) {
       // (uncut set-only rows from the cell index have their own scan).
       for (auto plan : {RowOptions::Plan::kAuto, RowOptions::Plan::kGraph,
                         RowOptions::Plan::kCells}) {
+        // Traversal order with distances: each row's (id, distance) pairs
+        // are the reference's.
+        RowOptions traversal;
+        traversal.closest_first = false;
+        traversal.plan = plan;
+        auto tr = WithinRadius(*t, qs, r, cap, {}, traversal);
+        ASSERT_TRUE(tr.ok());
+        ASSERT_EQ(tr->offsets, res->offsets) << "traversal r=" << r;
+        for (size_t i = 0; i < tr->num_queries(); ++i) {
+          if (tr->truncated[i]) continue;
+          std::vector<std::pair<uint32_t, double>> got, want;
+          for (uint64_t k = tr->offsets[i]; k < tr->offsets[i + 1]; ++k) {
+            got.push_back({tr->ids[k], tr->distances[k]});
+            want.push_back({res->ids[k], res->distances[k]});
+          }
+          std::sort(got.begin(), got.end());
+          std::sort(want.begin(), want.end());
+          ASSERT_EQ(got, want) << "traversal r=" << r << " query " << i;
+        }
         RowOptions set_only;
         set_only.closest_first = false;
         set_only.distances = false;
@@ -257,18 +276,22 @@ TEST(Queries, TotalLimitStopsTheWork) {
   QueryLimits limits;
   limits.max_total_results = 50000;
   for (auto plan : {RowOptions::Plan::kGraph, RowOptions::Plan::kCells}) {
-    RowOptions rows;
-    rows.plan = plan;
-    const auto t0 = std::chrono::steady_clock::now();
-    auto r = WithinRadiusOfPoints(*t, ids, 10.0, false, 0, limits, rows);
-    const double s =
-        std::chrono::duration<double>(std::chrono::steady_clock::now() - t0)
-            .count();
-    EXPECT_EQ(r.status().code(), absl::StatusCode::kResourceExhausted);
-    EXPECT_NE(r.status().message().find("50000"), std::string::npos);
-    // The whole answer (10^8 results) takes tens of seconds; the refusal
-    // builds at most a few rows of 10^4.
-    EXPECT_LT(s, 2.0);
+    for (bool sets : {false, true}) {  // set-only rows have their own scan
+      RowOptions rows;
+      rows.plan = plan;
+      rows.closest_first = !sets;
+      rows.distances = !sets;
+      const auto t0 = std::chrono::steady_clock::now();
+      auto r = WithinRadiusOfPoints(*t, ids, 10.0, false, 0, limits, rows);
+      const double s =
+          std::chrono::duration<double>(std::chrono::steady_clock::now() - t0)
+              .count();
+      EXPECT_EQ(r.status().code(), absl::StatusCode::kResourceExhausted);
+      EXPECT_NE(r.status().message().find("50000"), std::string::npos);
+      // The whole answer (10^8 results) takes tens of seconds; the refusal
+      // builds at most a few rows of 10^4.
+      EXPECT_LT(s, 2.0);
+    }
   }
   // Exactly at the limit is allowed.
   limits.max_total_results = 10000;
