@@ -10,7 +10,6 @@
 #include <mutex>
 #include <optional>
 #include <queue>
-#include <type_traits>
 
 #include "absl/container/flat_hash_set.h"
 #include "absl/strings/str_cat.h"
@@ -647,8 +646,8 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
             // One run of candidates into out from slot c (the row holds m
             // results), without a branch on the outcome; returns m. (Both
             // fields are written: the vector may copy the slot.)
-            auto filter = [&](uint32_t c, uint32_t ce, size_t m,
-                              auto with_distances) {
+            const bool with_distances = options.distances;
+            auto filter = [&](uint32_t c, uint32_t ce, size_t m) {
               out.resize(m + (ce - c));
               Hit* o = out.data();
               for (uint32_t s = c; s < ce; ++s) {
@@ -680,10 +679,7 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
               constexpr uint32_t kChunk = 256;
               for (uint32_t c = b; c < e; c += kChunk) {
                 const uint32_t ce = std::min(e, c + kChunk);
-                const size_t m =
-                    options.distances
-                        ? filter(c, ce, out.size(), std::true_type{})
-                        : filter(c, ce, out.size(), std::false_type{});
+                const size_t m = filter(c, ce, out.size());
                 out.resize(m);
                 scanned += ce - c;
                 if (m > budget.cap) {
