@@ -5,6 +5,9 @@
 
 #include <cuda_runtime.h>
 
+#include <cstdio>
+#include <cstdlib>
+
 #include "core/device/cuda_backend.h"
 #include "core/device/round_executor.inl"
 
@@ -26,8 +29,26 @@ std::unique_ptr<DeviceExecutor> MakeCudaExecutor() {
   // The exact predicates keep their expansions in per-thread local memory:
   // the stack limit is raised once per process, when the first executor is
   // made (never per call). A failure shows up as the first launch's error.
-  static const cudaError_t stack_limit =
-      cudaDeviceSetLimit(cudaLimitStackSize, 96 * 1024);
+  // KINETRI_CUDA_STACK_BYTES overrides the size (0: leave the limit alone),
+  // for measuring what the limit costs (docs/DEVICE.md).
+  static const cudaError_t stack_limit = [] {
+    size_t bytes = 96 * 1024;
+    if (const char* env = std::getenv("KINETRI_CUDA_STACK_BYTES")) {
+      bytes = std::strtoull(env, nullptr, 10);
+    }
+    const cudaError_t e = bytes != 0
+                              ? cudaDeviceSetLimit(cudaLimitStackSize, bytes)
+                              : cudaSuccess;
+    if (std::getenv("KINETRI_DEVICE_PROFILE") != nullptr) {
+      size_t now = 0;
+      cudaDeviceGetLimit(&now, cudaLimitStackSize);
+      std::fprintf(stderr,
+                   "[device profile] stack limit: asked %zu bytes (%s), now "
+                   "%zu bytes\n",
+                   bytes, cudaGetErrorString(e), now);
+    }
+    return e;
+  }();
   (void)stack_limit;
   return cuda_build::MakeExecutor(DeviceBackend::kCuda);
 }

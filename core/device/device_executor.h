@@ -57,6 +57,10 @@ struct DeviceAttempt {
   double transfer_seconds = 0.0;  // uploads and downloads
   uint64_t bytes_uploaded = 0;
   uint64_t bytes_downloaded = 0;
+  // Device algorithms (Thrust calls, each a launch or more and a
+  // synchronization) the attempt ran: with the seconds above, the cost of
+  // one on the backend.
+  uint64_t device_calls = 0;
 };
 
 // One batch of queries for the device executor. Its arguments are already

@@ -27,15 +27,19 @@
 #include <thrust/transform.h>
 
 #include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <cstdint>
+#include <cstdio>
+#include <cstdlib>
 #include <memory>
 #include <mutex>
 #include <type_traits>
 #include <vector>
 
 #include "core/device/device_executor.h"
+#include "core/device/scratch_pool.inl"
 #include "core/hint_grid.h"
 #include "core/query_search.h"
 #include "core/query_types.h"
@@ -266,9 +270,57 @@ struct Scratch {
 // The device copy of a query view and the queries over it.
 class QueryEngine {
  public:
+  QueryEngine() = default;
+  QueryEngine(const QueryEngine&) = delete;
+  QueryEngine& operator=(const QueryEngine&) = delete;
+  ~QueryEngine() {
+    if (std::getenv("KINETRI_DEVICE_PROFILE") == nullptr) return;
+    std::fprintf(stderr,
+                 "[device profile] queries: %llu calls, %llu blocks, %llu "
+                 "queries, %llu device algorithms, %.3f s\n",
+                 static_cast<unsigned long long>(runs_.load()),
+                 static_cast<unsigned long long>(blocks_.load()),
+                 static_cast<unsigned long long>(queries_.load()),
+                 static_cast<unsigned long long>(calls_.load()),
+                 static_cast<double>(nanos_.load()) * 1e-9);
+  }
+
   absl::StatusOr<NeighborLists> Run(const TriangulationView& host,
                                     uint64_t generation, const DeviceQuery& q,
                                     bool large_blocks) {
+    const auto t0 = std::chrono::steady_clock::now();
+    absl::StatusOr<NeighborLists> out =
+        RunQuery(host, generation, q, large_blocks);
+    runs_.fetch_add(1, std::memory_order_relaxed);
+    queries_.fetch_add(
+        q.kind == DeviceQuery::Kind::kAllNearest ? view_.num_points : q.size(),
+        std::memory_order_relaxed);
+    nanos_.fetch_add(static_cast<uint64_t>(SecondsSince(t0) * 1e9),
+                     std::memory_order_relaxed);
+    return out;
+  }
+
+  uint64_t bytes() const {
+    std::lock_guard<std::mutex> lock(mu_);
+    uint64_t words = 0;
+    for (const auto* v : {&ext_of_int_, &int_of_ext_, &rep_, &dup_next_,
+                          &sites_, &line_, &line_rank_, &adj_offsets_, &adj_,
+                          &member_offsets_, &members_, &hint_cells_}) {
+      words += v->capacity();
+    }
+    uint64_t bytes = words * sizeof(uint32_t) + pos_.capacity() * sizeof(Vec2) +
+                     pool_.bytes();
+    for (const Scratch* w : free_) bytes += w->bytes();  // idle ones
+    return bytes;
+  }
+
+ private:
+  using U32 = qthr::device_vector<uint32_t>;
+
+  absl::StatusOr<NeighborLists> RunQuery(const TriangulationView& host,
+                                         uint64_t generation,
+                                         const DeviceQuery& q,
+                                         bool large_blocks) {
     Refresh(host, generation);
     switch (q.kind) {
       case DeviceQuery::Kind::kAllNearest:
@@ -280,21 +332,12 @@ class QueryEngine {
     return absl::InternalError("unknown device query kind");
   }
 
-  uint64_t bytes() const {
-    std::lock_guard<std::mutex> lock(mu_);
-    uint64_t words = 0;
-    for (const auto* v : {&ext_of_int_, &int_of_ext_, &rep_, &dup_next_,
-                          &sites_, &line_, &line_rank_, &adj_offsets_, &adj_,
-                          &member_offsets_, &members_, &hint_cells_}) {
-      words += v->capacity();
-    }
-    uint64_t bytes = words * sizeof(uint32_t) + pos_.capacity() * sizeof(Vec2);
-    for (const Scratch* w : free_) bytes += w->bytes();  // idle ones
-    return bytes;
+  // The policy of every Thrust algorithm below (temporaries from pool_);
+  // each call counts one device algorithm.
+  PoolPolicy P() {
+    calls_.fetch_add(1, std::memory_order_relaxed);
+    return Policy(pool_);
   }
-
- private:
-  using U32 = qthr::device_vector<uint32_t>;
 
   // Uploads the view when its generation changed (concurrent callers of one
   // generation wait for a single upload).
@@ -360,15 +403,17 @@ class QueryEngine {
     out.offsets.assign(size_t{n} + 1, 0);
     out.truncated.assign(n, 0);
     if (n == 0) return out;
-    U32 nn(n);
-    qthr::device_vector<double> dist(n);
-    qthr::for_each(qthr::counting_iterator<uint32_t>(0),
+    Scratch* w = Acquire();
+    w->ids.resize(n);
+    w->dist.resize(n);
+    qthr::for_each(P(), qthr::counting_iterator<uint32_t>(0),
                    qthr::counting_iterator<uint32_t>(n),
-                   AllNearest{view_, QRaw(nn), QRaw(dist)});
+                   AllNearest{view_, QRaw(w->ids), QRaw(w->dist)});
     std::vector<uint32_t> h_nn(n);
     std::vector<double> h_dist(n);
-    Download(nn, n, &h_nn, 0);
-    Download(dist, n, &h_dist, 0);
+    Download(w->ids, n, &h_nn, 0);
+    Download(w->dist, n, &h_dist, 0);
+    Release(w);
     for (uint32_t i = 0; i < n; ++i) {
       out.offsets[i + 1] = out.offsets[i] + (h_nn[i] != kNoVertex ? 1 : 0);
     }
@@ -396,6 +441,7 @@ class QueryEngine {
   void Release(Scratch* s) {
     // A big answer's buffers are not kept (kDeviceQueryScratchBytes).
     if (s->bytes() > kDeviceQueryScratchBytes) *s = Scratch{};
+    pool_.Trim(kDeviceQueryScratchBytes);
     std::lock_guard<std::mutex> lock(mu_);
     free_.push_back(s);
   }
@@ -451,6 +497,7 @@ class QueryEngine {
       }
       const auto t0 = std::chrono::steady_clock::now();
       const uint32_t nb = static_cast<uint32_t>(std::min(block, nq - begin));
+      blocks_.fetch_add(1, std::memory_order_relaxed);
       Prepare(q, begin, nb, w);
       const uint64_t remaining = limit ? limit - total : UINT64_MAX;
       const uint64_t rows_total =
@@ -492,24 +539,25 @@ class QueryEngine {
     if (q.by_ids) {
       w.targets.assign(q.ids.begin() + begin, q.ids.begin() + begin + nb);
       qthr::for_each(
-          first, last,
+          P(), first, last,
           PrepareIds{view_, QRaw(w.targets), q.exclude_self, QRaw(w.items)});
     } else {
       w.positions.assign(q.positions.begin() + begin,
                          q.positions.begin() + begin + nb);
       qthr::for_each(
-          first, last,
+          P(), first, last,
           PreparePositions{view_, hints_, QRaw(w.positions), QRaw(w.items)});
     }
   }
 
   // w.counts[0..nb) -> w.offsets (exclusive scan) and w.h_offsets; returns
   // the block's total.
-  static uint64_t ScanCounts(uint32_t nb, Scratch& w) {
+  uint64_t ScanCounts(uint32_t nb, Scratch& w) {
     w.counts.resize(size_t{nb} + 1);
     w.counts[nb] = 0;
     w.offsets.resize(size_t{nb} + 1);
-    qthr::exclusive_scan(w.counts.begin(), w.counts.end(), w.offsets.begin());
+    qthr::exclusive_scan(P(), w.counts.begin(), w.counts.end(),
+                         w.offsets.begin());
     w.h_offsets.resize(size_t{nb} + 1);
     qthr::copy(w.offsets.begin(), w.offsets.end(), w.h_offsets.begin());
     return w.h_offsets[nb];
@@ -519,14 +567,14 @@ class QueryEngine {
     w.slots.resize(uint64_t{kk} * nb);
     w.counts.resize(size_t{nb} + 1);
     qthr::for_each(
-        qthr::counting_iterator<uint32_t>(0),
+        P(), qthr::counting_iterator<uint32_t>(0),
         qthr::counting_iterator<uint32_t>(nb),
         KnnRows{view_, QRaw(w.items), kk, QRaw(w.slots), QRaw(w.counts)});
     const uint64_t total = ScanCounts(nb, w);
     w.h_truncated.assign(nb, 0);
     w.ids.resize(total);
     w.dist.resize(total);
-    qthr::for_each(qthr::counting_iterator<uint32_t>(0),
+    qthr::for_each(P(), qthr::counting_iterator<uint32_t>(0),
                    qthr::counting_iterator<uint32_t>(nb),
                    CompactKnn{QRaw(ext_of_int_), QRaw(w.slots), kk,
                               QRaw(w.offsets), QRaw(w.ids), QRaw(w.dist)});
@@ -543,7 +591,7 @@ class QueryEngine {
     w.found.resize(nb);
     w.counts.resize(size_t{nb} + 1);
     qthr::for_each(
-        qthr::counting_iterator<uint32_t>(0),
+        P(), qthr::counting_iterator<uint32_t>(0),
         qthr::counting_iterator<uint32_t>(nb),
         RadiusCounts{view_, QRaw(w.items), q.radius, q.max_results,
                      static_cast<uint32_t>(std::min<uint64_t>(cap, UINT32_MAX)),
@@ -559,7 +607,7 @@ class QueryEngine {
     w.entries.resize(total);
     w.rows.resize(total);
     qthr::for_each(
-        qthr::counting_iterator<uint32_t>(0),
+        P(), qthr::counting_iterator<uint32_t>(0),
         qthr::counting_iterator<uint32_t>(nb),
         RadiusFill{view_, QRaw(w.items), q.radius, q.max_results, QRaw(w.found),
                    QRaw(w.offsets), QRaw(w.entries), QRaw(w.rows)});
@@ -568,16 +616,16 @@ class QueryEngine {
     const uint32_t* order = nullptr;
     if (q.rows.closest_first) {
       w.order.resize(total);
-      qthr::sequence(w.order.begin(), w.order.end());
+      qthr::sequence(P(), w.order.begin(), w.order.end());
       qthr::sort(
-          w.order.begin(), w.order.end(),
+          P(), w.order.begin(), w.order.end(),
           EntryBefore{view_, QRaw(w.items), QRaw(w.entries), QRaw(w.rows)});
       order = QRaw(w.order);
     }
     w.ids.resize(total);
     w.dist.resize(q.rows.distances ? total : 0);
     qthr::for_each(
-        qthr::counting_iterator<uint64_t>(0),
+        P(), qthr::counting_iterator<uint64_t>(0),
         qthr::counting_iterator<uint64_t>(total),
         WriteEntries{QRaw(ext_of_int_), QRaw(w.entries), order, QRaw(w.ids),
                      q.rows.distances ? QRaw(w.dist) : nullptr});
@@ -594,6 +642,9 @@ class QueryEngine {
   static constexpr size_t kMaxSlotBytes = size_t{64} << 20;
 
   mutable std::mutex mu_;
+  ScratchPool pool_;  // Thrust's temporaries of every call
+  // Over the engine's life (KINETRI_DEVICE_PROFILE prints them).
+  std::atomic<uint64_t> calls_{0}, runs_{0}, blocks_{0}, queries_{0}, nanos_{0};
   bool valid_ = false;
   uint64_t generation_ = 0;
   TriangulationView view_;

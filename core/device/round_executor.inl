@@ -32,6 +32,8 @@
 
 #include <chrono>
 #include <cstdint>
+#include <cstdio>
+#include <cstdlib>
 #include <memory>
 #include <type_traits>
 #include <vector>
@@ -39,6 +41,7 @@
 #include "core/device/atomic.h"
 #include "core/device/device_executor.h"
 #include "core/device/device_queries.inl"
+#include "core/device/scratch_pool.inl"
 #include "core/flip_rules.h"
 #include "core/mesh.h"
 #include "core/vec2.h"
@@ -404,9 +407,9 @@ double Since(std::chrono::steady_clock::time_point t0) {
       .count();
 }
 
-void SortUnique(U32Vector& v) {
-  thr::sort(v.begin(), v.end());
-  v.erase(thr::unique(v.begin(), v.end()), v.end());
+void SortUnique(ScratchPool& pool, U32Vector& v) {
+  thr::sort(Policy(pool), v.begin(), v.end());
+  v.erase(thr::unique(Policy(pool), v.begin(), v.end()), v.end());
 }
 
 class RoundDeviceExecutor final : public DeviceExecutor {
@@ -425,7 +428,8 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       words += v->capacity();
     }
     return words * sizeof(uint32_t) + pos_.capacity() * sizeof(Vec2) +
-           props_.capacity() * sizeof(rules::FixProposal) + queries_.bytes();
+           props_.capacity() * sizeof(rules::FixProposal) + pool_.bytes() +
+           queries_.bytes();
   }
 
   absl::StatusOr<NeighborLists> Query(const TriangulationView& host,
@@ -435,11 +439,45 @@ class RoundDeviceExecutor final : public DeviceExecutor {
                         /*large_blocks=*/backend_ == DeviceBackend::kCuda);
   }
 
+  ~RoundDeviceExecutor() override {
+    if (std::getenv("KINETRI_DEVICE_PROFILE") == nullptr) return;
+    std::fprintf(
+        stderr,
+        "[device profile] %s executor: %llu attempts, %llu fixing "
+        "and %llu legalizing rounds, %llu device algorithms; fix "
+        "%.3f s, legalize %.3f s, transfers %.3f s\n",
+        DeviceBackendName(backend_),
+        static_cast<unsigned long long>(totals_.attempts),
+        static_cast<unsigned long long>(totals_.counts.fix_rounds),
+        static_cast<unsigned long long>(totals_.counts.legalize_rounds),
+        static_cast<unsigned long long>(totals_.calls), totals_.fix_seconds,
+        totals_.legalize_seconds, totals_.transfer_seconds);
+  }
+
   absl::StatusOr<DeviceAttempt> Attempt(Mesh& mesh, absl::Span<const Vec2> to,
                                         const std::vector<uint32_t>* candidates,
                                         const std::vector<uint32_t>* seeds,
                                         double rebuild_fraction,
                                         const CancelToken* cancel) override {
+    const uint64_t calls = calls_;
+    DeviceAttempt out =
+        AttemptOnDevice(mesh, to, candidates, seeds, rebuild_fraction, cancel);
+    out.device_calls = calls_ - calls;
+    ++totals_.attempts;
+    totals_.calls += out.device_calls;
+    totals_.counts += out.counts;
+    totals_.fix_seconds += out.fix_seconds;
+    totals_.legalize_seconds += out.legalize_seconds;
+    totals_.transfer_seconds += out.transfer_seconds;
+    return out;
+  }
+
+ private:
+  DeviceAttempt AttemptOnDevice(Mesh& mesh, absl::Span<const Vec2> to,
+                                const std::vector<uint32_t>* candidates,
+                                const std::vector<uint32_t>* seeds,
+                                double rebuild_fraction,
+                                const CancelToken* cancel) {
     DeviceAttempt out;
     auto t0 = std::chrono::steady_clock::now();
     const uint32_t nt = mesh.num_triangles();
@@ -469,9 +507,9 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     // Invalid triangles (the first worklist).
     if (candidates == nullptr) {
       work_.resize(nt);
-      work_.erase(
-          thr::copy_if(Count(0), Count(nt), work_.begin(), TriangleBad{m, p}),
-          work_.end());
+      work_.erase(thr::copy_if(P(), Count(0), Count(nt), work_.begin(),
+                               TriangleBad{m, p}),
+                  work_.end());
       if (work_.size() > rebuild_fraction * nt) {
         out.tangled = true;
         out.fix_seconds = Since(t0);
@@ -479,11 +517,11 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       }
     } else {
       work_.resize(seeds_.size());
-      work_.erase(thr::copy_if(seeds_.begin(), seeds_.end(), work_.begin(),
+      work_.erase(thr::copy_if(P(), seeds_.begin(), seeds_.end(), work_.begin(),
                                TriangleBad{m, p}),
                   work_.end());
     }
-    SortUnique(work_);
+    SortUnique(pool_, work_);
     touched_.clear();
     const bool keep_touched = seeds != nullptr;
     stale_ = true;  // until the result is downloaded
@@ -500,7 +538,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       const uint32_t ne = mesh.num_half_edges();
       work_.resize(ne);
       work_.erase(
-          thr::copy_if(Count(0), Count(ne), work_.begin(), IsCanonical{m}),
+          thr::copy_if(P(), Count(0), Count(ne), work_.begin(), IsCanonical{m}),
           work_.end());
     } else {
       const size_t ns = seeds->size(), nt_touched = touched_.size();
@@ -508,11 +546,11 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       thr::copy(seeds->begin(), seeds->end(), next_.begin());
       thr::copy(touched_.begin(), touched_.end(), next_.begin() + ns);
       out.bytes_uploaded += 4ull * ns;
-      SortUnique(next_);
+      SortUnique(pool_, next_);
       work_.resize(3 * next_.size());
-      thr::for_each(Count(0), Count(static_cast<uint32_t>(next_.size())),
+      thr::for_each(P(), Count(0), Count(static_cast<uint32_t>(next_.size())),
                     TriangleEdges{m, Raw(next_), Raw(work_)});
-      SortUnique(work_);
+      SortUnique(pool_, work_);
     }
     if (!Legalize(m, p, cancel, &out.counts)) {
       out.legalize_seconds = Since(t0);
@@ -536,7 +574,13 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     return out;
   }
 
- private:
+  // The policy of every Thrust algorithm below (temporaries from pool_);
+  // each call counts one device algorithm.
+  PoolPolicy P() {
+    ++calls_;
+    return Policy(pool_);
+  }
+
   // Fixing rounds over work_ (sorted, unique). 1: fixed (and the hull winds
   // once); 0: stuck (out->stuck_corners filled); -1: cancelled.
   int Fix(const MeshView& m, const Vec2* p, uint32_t nt, uint32_t nv,
@@ -545,28 +589,28 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     while (true) {
       if (cancel != nullptr && cancel->Cancelled()) return -1;
       bad_.resize(work_.size());
-      bad_.erase(thr::copy_if(work_.begin(), work_.end(), bad_.begin(),
+      bad_.erase(thr::copy_if(P(), work_.begin(), work_.end(), bad_.begin(),
                               TriangleBad{m, p}),
                  bad_.end());
       if (bad_.empty()) break;
       const uint32_t nb = static_cast<uint32_t>(bad_.size());
       props_.resize(nb);
-      thr::transform(bad_.begin(), bad_.end(), props_.begin(),
+      thr::transform(P(), bad_.begin(), bad_.end(), props_.begin(),
                      ProposeFix{m, p});
-      props_.erase(thr::remove_if(props_.begin(), props_.end(), NoFlip{}),
+      props_.erase(thr::remove_if(P(), props_.begin(), props_.end(), NoFlip{}),
                    props_.end());
       if (props_.empty()) {
         Stuck(m, bad_, out);
         return 0;
       }
-      thr::sort(props_.begin(), props_.end(), EdgeLess{});
-      props_.erase(thr::unique(props_.begin(), props_.end(), EdgeEqual{}),
+      thr::sort(P(), props_.begin(), props_.end(), EdgeLess{});
+      props_.erase(thr::unique(P(), props_.begin(), props_.end(), EdgeEqual{}),
                    props_.end());
       const uint32_t np = static_cast<uint32_t>(props_.size());
       edges_.resize(np);
       joins_.resize(2 * np);
       kinds_.resize(np);
-      thr::for_each(Count(0), Count(np),
+      thr::for_each(P(), Count(0), Count(np),
                     SplitProposal{thr::raw_pointer_cast(props_.data()),
                                   Raw(edges_), Raw(joins_), Raw(kinds_)});
       const uint32_t nw =
@@ -576,40 +620,40 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       // Next worklist: the still-invalid triangles plus every winner's
       // footprint (taken before flipping; flips keep triangle ids).
       win_edges_.resize(nw);
-      thr::gather(winners_.begin(), winners_.end(), edges_.begin(),
+      thr::gather(P(), winners_.begin(), winners_.end(), edges_.begin(),
                   win_edges_.begin());
       next_.resize(nb + 6ull * nw);
       thr::copy(bad_.begin(), bad_.end(), next_.begin());
       const size_t touched_base = touched_.size();
       if (keep_touched) touched_.resize(touched_base + 2ull * nw);
-      thr::for_each(Count(0), Count(nw),
+      thr::for_each(P(), Count(0), Count(nw),
                     WriteFootprint{
                         m, Raw(win_edges_), Raw(next_) + nb,
                         keep_touched ? Raw(touched_) + touched_base : nullptr});
       FlipWinners(m, nw);
       // Flip kinds of the winners (kinds_ reused as their gathered copy).
       bad_.resize(nw);
-      thr::gather(winners_.begin(), winners_.end(), kinds_.begin(),
+      thr::gather(P(), winners_.begin(), winners_.end(), kinds_.begin(),
                   bad_.begin());
       ++counts.fix_rounds;
-      counts.interior_fix +=
-          thr::count_if(bad_.begin(), bad_.end(), KindIs{rules::kInteriorFlip});
-      counts.hull_absorb +=
-          thr::count_if(bad_.begin(), bad_.end(), KindIs{rules::kHullAbsorb});
-      counts.hull_release +=
-          thr::count_if(bad_.begin(), bad_.end(), KindIs{rules::kHullRelease});
-      SortUnique(next_);
+      counts.interior_fix += thr::count_if(P(), bad_.begin(), bad_.end(),
+                                           KindIs{rules::kInteriorFlip});
+      counts.hull_absorb += thr::count_if(P(), bad_.begin(), bad_.end(),
+                                          KindIs{rules::kHullAbsorb});
+      counts.hull_release += thr::count_if(P(), bad_.begin(), bad_.end(),
+                                           KindIs{rules::kHullRelease});
+      SortUnique(pool_, next_);
       work_.swap(next_);
     }
     const HullCount hull = thr::transform_reduce(
-        Count(0), Count(nt), HullOf{m, p}, HullCount{}, HullPlus{});
+        P(), Count(0), Count(nt), HullOf{m, p}, HullCount{}, HullPlus{});
     if (hull.bad != 0 || hull.ghosts < 3 || hull.tops != 1) {
       // Every triangle is valid but the hull winds more than once: the
       // ghost triangles' vertices are the ones to hold back.
       bad_.resize(nt);
-      bad_.erase(
-          thr::copy_if(Count(0), Count(nt), bad_.begin(), IsGhostTriangle{m}),
-          bad_.end());
+      bad_.erase(thr::copy_if(P(), Count(0), Count(nt), bad_.begin(),
+                              IsGhostTriangle{m}),
+                 bad_.end());
       Stuck(m, bad_, out);
       return 0;
     }
@@ -630,70 +674,72 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     while (true) {
       if (cancel != nullptr && cancel->Cancelled()) return false;
       next_.resize(work_.size());
-      next_.erase(thr::copy_if(work_.begin(), work_.end(), next_.begin(),
+      next_.erase(thr::copy_if(P(), work_.begin(), work_.end(), next_.begin(),
                                EdgeIllegal{m, p}),
                   next_.end());
       edges_.resize(known_.size() + next_.size());
-      thr::merge(known_.begin(), known_.end(), next_.begin(), next_.end(),
+      thr::merge(P(), known_.begin(), known_.end(), next_.begin(), next_.end(),
                  edges_.begin());
       if (edges_.empty()) return true;
       const uint32_t ni = static_cast<uint32_t>(edges_.size());
       const uint32_t nw = SelectWinners(
           Claims{m, Raw(edges_), nullptr, Raw(tri_claim_), nullptr, 0}, ni);
       win_edges_.resize(nw);
-      thr::gather(winners_.begin(), winners_.end(), edges_.begin(),
+      thr::gather(P(), winners_.begin(), winners_.end(), edges_.begin(),
                   win_edges_.begin());
       FlipWinners(m, nw);
       // Losers whose triangles did not flip stay known to be illegal.
-      thr::for_each(Count(0), Count(nw),
+      thr::for_each(P(), Count(0), Count(nw),
                     MarkFlipped{m, Raw(win_edges_), Raw(tri_claim_), 0});
       known_.resize(ni);
       known_.erase(
-          thr::copy_if(edges_.begin(), edges_.end(), Count(0), known_.begin(),
+          thr::copy_if(P(), edges_.begin(), edges_.end(), Count(0),
+                       known_.begin(),
                        UnchangedLoser{m, Raw(edges_),
                                       thr::raw_pointer_cast(flags_.data()),
                                       Raw(tri_claim_)}),
           known_.end());
-      thr::for_each(Count(0), Count(nw),
+      thr::for_each(P(), Count(0), Count(nw),
                     MarkFlipped{m, Raw(win_edges_), Raw(tri_claim_), kNoEdge});
       // Next worklist: the four outer edges of each flipped quad.
       work_.resize(4ull * nw);
-      thr::for_each(Count(0), Count(nw),
+      thr::for_each(P(), Count(0), Count(nw),
                     OuterEdges{m, Raw(win_edges_), Raw(work_)});
       ++counts->legalize_rounds;
       counts->delaunay += nw;
-      SortUnique(work_);
+      SortUnique(pool_, work_);
     }
   }
 
   // Flips the edges in win_edges_ (disjoint footprints) and refreshes
   // vertex_edge of their quads' corners.
   void FlipWinners(const MeshView& m, uint32_t nw) {
-    thr::for_each(win_edges_.begin(), win_edges_.end(), FlipOp{m});
+    thr::for_each(P(), win_edges_.begin(), win_edges_.end(), FlipOp{m});
     const QuadCorners q{m, Raw(win_edges_), Raw(vertex_edge_), Raw(last_)};
-    thr::for_each(Count(0), Count(nw), MarkLast{q});
-    thr::for_each(Count(0), Count(nw), WriteVertexEdges{q});
-    thr::for_each(Count(0), Count(nw), ClearLast{q});
+    thr::for_each(P(), Count(0), Count(nw), MarkLast{q});
+    thr::for_each(P(), Count(0), Count(nw), WriteVertexEdges{q});
+    thr::for_each(P(), Count(0), Count(nw), ClearLast{q});
   }
 
   // Claims for n proposals; winners_ receives the indices of the winners
   // (ascending), flags_ one byte per proposal (1: won). Returns their count.
   uint32_t SelectWinners(const Claims& c, uint32_t n) {
-    thr::for_each(Count(0), Count(n), ClaimOp{c});
+    thr::for_each(P(), Count(0), Count(n), ClaimOp{c});
     flags_.resize(n);
-    thr::transform(Count(0), Count(n), flags_.begin(), WonOp{c});
+    thr::transform(P(), Count(0), Count(n), flags_.begin(), WonOp{c});
     winners_.resize(n);
-    winners_.erase(thr::copy_if(Count(0), Count(n), flags_.begin(),
+    winners_.erase(thr::copy_if(P(), Count(0), Count(n), flags_.begin(),
                                 winners_.begin(), IsSet{}),
                    winners_.end());
-    thr::for_each(Count(0), Count(n), ReleaseOp{c});
+    thr::for_each(P(), Count(0), Count(n), ReleaseOp{c});
     return static_cast<uint32_t>(winners_.size());
   }
 
   void Stuck(const MeshView& m, U32Vector& triangles, DeviceAttempt* out) {
     const uint32_t n = static_cast<uint32_t>(triangles.size());
     next_.resize(3ull * n);
-    thr::for_each(Count(0), Count(n), Corners{m, Raw(triangles), Raw(next_)});
+    thr::for_each(P(), Count(0), Count(n),
+                  Corners{m, Raw(triangles), Raw(next_)});
     out->stuck_corners.resize(3ull * n);
     thr::copy(next_.begin(), next_.end(), out->stuck_corners.begin());
     out->bytes_downloaded += 12ull * n;
@@ -711,6 +757,17 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       touched_, seeds_, known_;
   thr::device_vector<uint8_t> flags_;
   thr::device_vector<rules::FixProposal> props_;
+  ScratchPool pool_;    // Thrust's temporaries, kept across rounds and steps
+  uint64_t calls_ = 0;  // device algorithms launched (P() calls)
+  // Over the executor's life (KINETRI_DEVICE_PROFILE prints them).
+  struct Totals {
+    uint64_t attempts = 0;
+    uint64_t calls = 0;
+    FlipCounts counts;
+    double fix_seconds = 0.0;
+    double legalize_seconds = 0.0;
+    double transfer_seconds = 0.0;
+  } totals_;
   QueryEngine queries_;  // the query view and the queries over it
 };
 

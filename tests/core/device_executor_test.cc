@@ -136,6 +136,29 @@ TEST(DeviceExecutor, MeshStaysResidentAcrossSteps) {
                                    device::kDeviceQueryScratchBytes);
 }
 
+// Thrust's temporaries come from the executor's pool (counted in
+// device_bytes) and go back to it: after a few steps of one kind the pool
+// holds all it needs, and further steps allocate nothing more.
+TEST(DeviceExecutor, TemporariesAreReusedAcrossSteps) {
+  const size_t n = 3000;
+  auto t =
+      Triangulation::Create(testing::UniformPoints(n, 21), DeviceOptions());
+  ASSERT_TRUE(t.ok());
+  std::mt19937_64 rng(22);
+  const double spacing = 1.0 / std::sqrt(double(n));
+  for (int s = 0; s < 3; ++s) {
+    ASSERT_TRUE(t->ApplyDisplacements(Brownian(n, 0.02 * spacing, rng)).ok());
+  }
+  const uint64_t settled = t->device_bytes();
+  for (int s = 0; s < 8; ++s) {
+    auto r = t->ApplyDisplacements(Brownian(n, 0.02 * spacing, rng));
+    ASSERT_TRUE(r.ok()) << r.status();
+    ASSERT_NE(r->path, UpdatePath::kRebuilt);
+    EXPECT_LE(t->device_bytes(), settled + settled / 4) << "step " << s;
+  }
+  EXPECT_TRUE(t->Validate().ok());
+}
+
 // Sparse steps (few points move) go through the candidate list; the result
 // is still CGAL's triangulation.
 TEST(DeviceExecutor, SparseStepsAreExact) {

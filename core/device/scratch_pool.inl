@@ -1,0 +1,126 @@
+// The device executor's pool of temporary storage (part of the device
+// source, see core/device/round_executor.inl): every Thrust algorithm of the
+// executor takes its scratch (sort buffers, selection counts, reduction
+// partials) from here through Policy(), so after the first rounds no call
+// allocates device memory. Without it each algorithm pays a cudaMalloc and
+// a synchronizing cudaFree; on the GPU machine of this project that made a
+// 1500-point step take seconds (docs/DEVICE.md).
+//
+// Blocks come in power-of-two size classes (at least 256 bytes) and go back
+// to their class's free list; Trim() hands cached blocks back to the device
+// beyond a byte budget. Safe for concurrent callers.
+#ifndef KINETRI_DEVICE_NS
+#error "define KINETRI_DEVICE_NS before including scratch_pool.inl"
+#endif
+#ifndef KINETRI_CORE_DEVICE_SCRATCH_POOL_INL_
+#define KINETRI_CORE_DEVICE_SCRATCH_POOL_INL_
+
+#include <thrust/execution_policy.h>
+#include <thrust/memory.h>
+
+#include <bit>
+#include <cstddef>
+#include <cstdint>
+#include <mutex>
+#include <new>
+#include <utility>
+#include <vector>
+
+namespace kinetri::core::device {
+namespace KINETRI_DEVICE_NS {
+namespace {
+
+namespace pthr = THRUST_NS_QUALIFIER;
+
+class ScratchPool {
+ public:
+  // Thrust's allocator interface (see Policy()).
+  using value_type = char;
+
+  ScratchPool() = default;
+  ScratchPool(const ScratchPool&) = delete;
+  ScratchPool& operator=(const ScratchPool&) = delete;
+  ~ScratchPool() { Trim(0); }
+
+  char* allocate(std::ptrdiff_t n) {
+    const int c = ClassOf(static_cast<size_t>(n));
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      if (!free_[c].empty()) {
+        char* p = free_[c].back();
+        free_[c].pop_back();
+        cached_bytes_ -= size_t{1} << c;
+        return p;
+      }
+    }
+    char* p = Raw(size_t{1} << c);
+    if (p == nullptr) {  // give the cached blocks back, then try once more
+      Trim(0);
+      p = Raw(size_t{1} << c);
+      if (p == nullptr) throw std::bad_alloc();
+    }
+    std::lock_guard<std::mutex> lock(mu_);
+    held_bytes_ += size_t{1} << c;
+    return p;
+  }
+
+  void deallocate(char* p, size_t n) {
+    const int c = ClassOf(n);
+    std::lock_guard<std::mutex> lock(mu_);
+    free_[c].push_back(p);
+    cached_bytes_ += size_t{1} << c;
+  }
+
+  // Frees cached blocks, largest first, until at most `keep` bytes stay
+  // cached.
+  void Trim(size_t keep) {
+    std::lock_guard<std::mutex> lock(mu_);
+    for (int c = kClasses - 1; c >= 0 && cached_bytes_ > keep; --c) {
+      while (!free_[c].empty() && cached_bytes_ > keep) {
+        pthr::free(pthr::device, pthr::device_pointer_cast(free_[c].back()));
+        free_[c].pop_back();
+        cached_bytes_ -= size_t{1} << c;
+        held_bytes_ -= size_t{1} << c;
+      }
+    }
+  }
+
+  // Device bytes the pool holds (in use and cached).
+  size_t bytes() const {
+    std::lock_guard<std::mutex> lock(mu_);
+    return held_bytes_;
+  }
+
+ private:
+  static constexpr int kClasses = 64;
+  static constexpr int kMinClass = 8;  // 256 bytes
+
+  static int ClassOf(size_t n) {
+    const int c = n <= 1 ? 0 : std::bit_width(n - 1);
+    return c < kMinClass ? kMinClass : c;
+  }
+
+  static char* Raw(size_t bytes) {
+    try {
+      return pthr::malloc<char>(pthr::device, bytes).get();
+    } catch (const std::exception&) {
+      return nullptr;
+    }
+  }
+
+  mutable std::mutex mu_;
+  std::vector<char*> free_[kClasses];
+  size_t held_bytes_ = 0;
+  size_t cached_bytes_ = 0;
+};
+
+// The execution policy of every Thrust call of the executor: the device
+// system, with temporary storage from `pool`.
+using PoolPolicy = decltype(pthr::device(std::declval<ScratchPool&>()));
+inline PoolPolicy Policy(ScratchPool& pool) { return pthr::device(pool); }
+
+}  // namespace
+}  // namespace KINETRI_DEVICE_NS
+}  // namespace kinetri::core::device
+
+#endif  // KINETRI_CORE_DEVICE_SCRATCH_POOL_INL_

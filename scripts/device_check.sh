@@ -1,0 +1,135 @@
+#!/usr/bin/env bash
+# Runs the CUDA build's checks on a machine with a GPU, in one go: the device
+# executor's typed suites on the CUDA backend, compute-sanitizer (memcheck,
+# racecheck) over a few of them, and kinetri-bench with the device engines.
+#
+# The build is made elsewhere (a Debian machine with our packages and nvcc):
+#   cmake -S . -B build-cuda -G Ninja -DCMAKE_BUILD_TYPE=Release \
+#     -DCMAKE_CUDA_ARCHITECTURES=90 -DCMAKE_CUDA_FLAGS=-lineinfo \
+#     -DKINETRI_CUDA=ON -DKINETRI_BUILD_SERVICE=OFF
+#   ninja -C build-cuda kinetic_cuda_test randomized_cuda_test \
+#     queries_cuda_test join_leave_cuda_test kinetri-bench kinetri-device-probe
+#   scripts/device_check.sh --collect-libs build-cuda
+# --collect-libs copies the shared libraries the binaries need beyond the C
+# library into build-cuda/devlibs, so the folder runs on a machine without
+# our Debian packages. Then, on the GPU machine:
+#   scripts/device_check.sh build-cuda OUT_DIR [BENCH_SIZES]
+# Every stage has its own time limit (seconds: TEST_S for the suites, BENCH_S
+# for each benchmark size, SAN_S for each sanitizer run); the logs and gtest
+# XML go to OUT_DIR and a short table is printed last.
+set -uo pipefail
+
+if [[ ${1:-} == --collect-libs ]]; then
+  B=${2:?build folder}
+  mkdir -p "$B/devlibs"
+  for bin in "$B"/tests/*_cuda_test "$B"/bench/kinetri-bench \
+    "$B"/bench/kinetri-device-probe; do
+    ldd "$bin" | awk '/=> \// {print $3}'
+  done | sort -u | while read -r lib; do
+    case $(basename "$lib") in
+      libc.so*|libm.so*|libpthread.so*|libdl.so*|librt.so*|ld-linux*|\
+      libcuda.so*) ;;
+      *) cp -L "$lib" "$B/devlibs/" ;;
+    esac
+  done
+  du -sh "$B/devlibs"
+  exit 0
+fi
+
+B=${1:?build folder}
+OUT_DIR=${2:?output folder}
+SIZES=${3:-100000,1000000}
+TEST_S=${TEST_S:-150}
+BENCH_S=${BENCH_S:-180}
+SAN_S=${SAN_S:-60}
+# Logs are written to $O and packed into OUT_DIR/logs.tgz after every stage
+# (so a machine that returns only a few files still returns them all).
+mkdir -p "$OUT_DIR"
+O=$(mktemp -d)
+pack() { tar czf "$OUT_DIR/logs.tgz" -C "$O" .; }
+if [[ -d $B/devlibs ]]; then
+  export LD_LIBRARY_PATH="$PWD/$B/devlibs:${LD_LIBRARY_PATH:-}"
+fi
+summary=()
+note() {
+  summary+=("$*")
+  echo "== $*"
+  pack
+}
+
+nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.sm,clocks.mem \
+  --format=csv | tee "$O/gpu.txt"
+# What each runtime call costs on this machine (CuPy, where installed).
+timeout 30 python3 "$(dirname "$0")/device_probe.py" | tee "$O/probe.txt"
+
+# 0. What one device algorithm costs, and what changes it: the probe alone,
+#    then three small kinetic tests with the executor's profile under the
+#    default settings, eager module loading, and the stack limit left alone.
+if [[ -x $B/bench/kinetri-device-probe ]]; then
+  timeout 60 "$B/bench/kinetri-device-probe" > "$O/call_probe.txt" 2>&1
+  note "kinetri-device-probe rc=$?"
+  cat "$O/call_probe.txt"
+fi
+small='Kinetic.ShearFlow:Kinetic.ClusteringAggregationAndDispersal'
+small+=':Kinetic.HullExpandsAndContracts'
+for cfg in DEFAULT=1 CUDA_MODULE_LOADING=EAGER KINETRI_CUDA_STACK_BYTES=0; do
+  env KINETRI_DEVICE_PROFILE=1 "$cfg" timeout 60 \
+    "$B/tests/kinetic_cuda_test" --gtest_filter="$small" \
+    > "$O/profile_${cfg%%=*}.log" 2>&1
+  note "profile with $cfg rc=$?"
+  grep -E 'OK \]|FAILED|profile\]' "$O/profile_${cfg%%=*}.log"
+done
+
+# 1. The typed suites on the CUDA backend, one after the other (processes
+#    sharing a GPU are time-sliced, which would blur the timings), each
+#    with the executor's profile at its end.
+for s in kinetic randomized queries join_leave; do
+  KINETRI_DEVICE_PROFILE=1 timeout "$TEST_S" "$B/tests/${s}_cuda_test" \
+    --gtest_output="xml:$O/${s}.xml" > "$O/${s}.log" 2>&1
+  rc=$?
+  passed=$(grep -c '^\[       OK \]' "$O/${s}.log")
+  failed=$(grep -c '^\[  FAILED  \]' "$O/${s}.log")
+  skipped=$(grep -c '^\[  SKIPPED \]' "$O/${s}.log")
+  took=$(grep -o 'tests\? from [0-9]* test suites\? ran. ([0-9]* ms total)' \
+    "$O/${s}.log" | grep -o '([0-9]* ms')
+  note "${s}_cuda_test rc=$rc ok=$passed failed_lines=$failed" \
+    "skipped=$skipped ${took:-}"
+  grep -E '^\[  FAILED  \]|Failure|error' "$O/${s}.log" | head -20
+done
+
+# 2. kinetri-bench at N points with the device engines beside the host ones
+#    (cross-checked between engines inside the benchmark).
+for n in ${SIZES//,/ }; do
+  timeout "$BENCH_S" stdbuf -oL "$B/bench/kinetri-bench" --sizes="$n" \
+    --steps=3 --workloads=brownian,paper \
+    --engines=kinetri,kinetri-device,grid,grid-device \
+    --query_points=100000 --json="$O/bench-$n.json" > "$O/bench-$n.log" 2>&1
+  note "kinetri-bench n=$n rc=$?"
+  grep -E 'kinetri-device|grid-device|\] ' "$O/bench-$n.log" | tail -40
+done
+
+# 3. compute-sanitizer over small tests (it slows kernels many times).
+if command -v compute-sanitizer > /dev/null; then
+  kfilter='Kinetic.ShearFlow:Kinetic.DuplicatesMergeAndSeparate'
+  kfilter+=':Kinetic.CollinearBecomesPlanarAndBack:Kinetic.HeldVerticesCollide'
+  qfilter='Queries.TinySets:Queries.Duplicates:Queries.Collinear'
+  qfilter+=':Queries.LatticeWithManyTies'
+  timeout "$SAN_S" compute-sanitizer --tool memcheck --print-limit 20 \
+    "$B/tests/kinetic_cuda_test" --gtest_filter="$kfilter" \
+    > "$O/memcheck.log" 2>&1
+  note "memcheck kinetic rc=$? $(grep -E 'ERROR SUMMARY' "$O/memcheck.log" | tail -1)"
+  timeout "$SAN_S" compute-sanitizer --tool memcheck --print-limit 20 \
+    "$B/tests/queries_cuda_test" --gtest_filter="$qfilter" \
+    > "$O/memcheck_queries.log" 2>&1
+  note "memcheck queries rc=$? $(grep -E 'ERROR SUMMARY' "$O/memcheck_queries.log" | tail -1)"
+  timeout "$SAN_S" compute-sanitizer --tool racecheck --print-limit 20 \
+    "$B/tests/kinetic_cuda_test" --gtest_filter="$kfilter" \
+    > "$O/racecheck.log" 2>&1
+  note "racecheck kinetic rc=$? $(grep -E 'ERROR SUMMARY|RACECHECK SUMMARY' "$O/racecheck.log" | tail -1)"
+else
+  note "compute-sanitizer: not on PATH"
+fi
+
+echo
+printf '%s\n' "${summary[@]}" | tee "$OUT_DIR/summary.txt"
+pack
