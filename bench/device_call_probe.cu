@@ -6,8 +6,9 @@
 // algorithm where a plain launch and synchronization cost 11 us; this
 // program times each suspect alone: Thrust algorithms with and without a
 // caching allocator, a kernel whose functor holds a large local array (as
-// the exact predicates do), before and after raising the stack limit as
-// core/device/cuda_backend.cu does.
+// the exact predicates do), before and after raising the stack limit (as
+// core/device/cuda_backend.cu did, to 96 KiB, before it left the limit to
+// the driver).
 //
 // Usage: kinetri-device-probe [--stack=BYTES] [--reps=N]
 #include <cuda_runtime.h>
@@ -131,7 +132,7 @@ int main(int argc, char** argv) {
           "Times single Thrust algorithms on 1000 elements on this GPU, "
           "with and without a caching allocator, and a kernel with a large "
           "stack frame before and after raising the stack limit to BYTES "
-          "(default 98304, as the device executor does).\n");
+          "(default 98304; 0: leave it).\n");
       return argv[i][2] == 'h' ? 0 : 2;
     }
   }

@@ -64,7 +64,7 @@ timeout 30 python3 "$(dirname "$0")/device_probe.py" | tee "$O/probe.txt"
 
 # 0. What one device algorithm costs, and what changes it: the probe alone,
 #    then three small kinetic tests with the executor's profile under the
-#    default settings, eager module loading, and the stack limit left alone.
+#    default settings, eager module loading, and a 96 KiB stack limit.
 if [[ -x $B/bench/kinetri-device-probe ]]; then
   timeout 60 "$B/bench/kinetri-device-probe" > "$O/call_probe.txt" 2>&1
   note "kinetri-device-probe rc=$?"
@@ -72,7 +72,7 @@ if [[ -x $B/bench/kinetri-device-probe ]]; then
 fi
 small='Kinetic.ShearFlow:Kinetic.ClusteringAggregationAndDispersal'
 small+=':Kinetic.HullExpandsAndContracts'
-for cfg in DEFAULT=1 CUDA_MODULE_LOADING=EAGER KINETRI_CUDA_STACK_BYTES=0; do
+for cfg in DEFAULT=1 CUDA_MODULE_LOADING=EAGER KINETRI_CUDA_STACK_BYTES=98304; do
   env KINETRI_DEVICE_PROFILE=1 "$cfg" timeout 60 \
     "$B/tests/kinetic_cuda_test" --gtest_filter="$small" \
     > "$O/profile_${cfg%%=*}.log" 2>&1

@@ -26,13 +26,16 @@ uint64_t GpuFreeBytes() {
 }
 
 std::unique_ptr<DeviceExecutor> MakeCudaExecutor() {
-  // The exact predicates keep their expansions in per-thread local memory:
-  // the stack limit is raised once per process, when the first executor is
-  // made (never per call). A failure shows up as the first launch's error.
-  // KINETRI_CUDA_STACK_BYTES overrides the size (0: leave the limit alone),
-  // for measuring what the limit costs (docs/DEVICE.md).
+  // The exact predicates keep their expansions in per-thread local memory
+  // (EdgeIllegal's kernel has the largest frame, about 58 KiB; ptxas sizes
+  // every frame statically: no recursion, no alloca). The driver raises the
+  // per-thread stack to what a launch needs, once, so the limit is left
+  // alone by default; it used to be raised to 96 KiB here, which only
+  // reserved more local memory (per-thread stack x resident threads).
+  // KINETRI_CUDA_STACK_BYTES sets it explicitly, once per process, for
+  // measuring what it costs (docs/DEVICE.md).
   static const cudaError_t stack_limit = [] {
-    size_t bytes = 96 * 1024;
+    size_t bytes = 0;
     if (const char* env = std::getenv("KINETRI_CUDA_STACK_BYTES")) {
       bytes = std::strtoull(env, nullptr, 10);
     }

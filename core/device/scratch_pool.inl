@@ -3,8 +3,8 @@
 // executor takes its scratch (sort buffers, selection counts, reduction
 // partials) from here through Policy(), so after the first rounds no call
 // allocates device memory. Without it each algorithm pays a cudaMalloc and
-// a synchronizing cudaFree; on the GPU machine of this project that made a
-// 1500-point step take seconds (docs/DEVICE.md).
+// a synchronizing cudaFree (on the H200 of docs/DEVICE.md a few
+// microseconds each: not what made the first GPU runs slow).
 //
 // Blocks come in power-of-two size classes (at least 256 bytes) and go back
 // to their class's free list; Trim() hands cached blocks back to the device
