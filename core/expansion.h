@@ -67,20 +67,32 @@ KINETRI_HD void Grow(const Expansion<N>& e, double b, Expansion<M>& h) {
   h.n = k;
 }
 
-// h = e + f (repeated Grow; output non-overlapping).
+// h = e (the first e.n components).
+template <int N, int M>
+KINETRI_HD void Assign(const Expansion<N>& e, Expansion<M>& h) {
+  for (int i = 0; i < e.n; ++i) h.c[i] = e.c[i];
+  h.n = e.n;
+}
+
+// h = e + f (repeated Grow; output non-overlapping). h must not be e or f.
+// The Grow steps alternate between h and one scratch expansion, the last
+// one into h, so no step copies a whole expansion.
 template <int N, int M, int K>
 KINETRI_HD void Sum(const Expansion<N>& e, const Expansion<M>& f,
                     Expansion<K>& h) {
   static_assert(K >= N + M, "Sum: output capacity too small");
-  Expansion<K> a;
-  a.n = e.n;
-  for (int i = 0; i < e.n; ++i) a.c[i] = e.c[i];
-  for (int j = 0; j < f.n; ++j) {
-    Expansion<K> t;
-    Grow(a, f.c[j], t);
-    a = t;
+  if (f.n == 0) {
+    Assign(e, h);
+    return;
   }
-  h = a;
+  Expansion<K> scratch;
+  Expansion<K>* dst = f.n % 2 == 1 ? &h : &scratch;
+  Grow(e, f.c[0], *dst);
+  for (int j = 1; j < f.n; ++j) {
+    Expansion<K>* src = dst;
+    dst = src == &h ? &scratch : &h;
+    Grow(*src, f.c[j], *dst);
+  }
 }
 
 // h = -e.
@@ -115,24 +127,28 @@ KINETRI_HD void Scale(const Expansion<N>& e, double b, Expansion<M>& h) {
   h.n = k;
 }
 
-// h = e * f.
+// h = e * f. h must not be e or f. The accumulator alternates between h
+// and one scratch expansion (no step copies a whole expansion).
 template <int N, int M, int K>
 KINETRI_HD void Multiply(const Expansion<N>& e, const Expansion<M>& f,
                          Expansion<K>& h) {
   static_assert(K >= 2 * N * M, "Multiply: output capacity too small");
-  Expansion<K> acc;
-  acc.c[0] = 0.0;
-  acc.n = 1;
+  Expansion<K> scratch;
+  Expansion<K>* acc = &h;
+  Expansion<K>* next = &scratch;
+  acc->c[0] = 0.0;
+  acc->n = 1;
   for (int j = 0; j < f.n; ++j) {
     Expansion<2 * N> part;
     Scale(e, f.c[j], part);
     for (int i = 0; i < part.n; ++i) {
-      Expansion<K> t;
-      Grow(acc, part.c[i], t);
-      acc = t;
+      Grow(*acc, part.c[i], *next);
+      Expansion<K>* done = acc;
+      acc = next;
+      next = done;
     }
   }
-  h = acc;
+  if (acc != &h) Assign(*acc, h);
 }
 
 // Exact a - b as a two-component expansion.
