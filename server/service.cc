@@ -339,9 +339,9 @@ grpc::Status KinetriServiceImpl::CreateSessionFromBytes(
   if (asked == v1::BACKEND_CUDA && !limits.has_device) {
     return grpc::Status(
         grpc::StatusCode::FAILED_PRECONDITION,
-        "header.options.backend: this server has no device executor (built "
-        "without CUDA, no GPU present, or --device=none); use BACKEND_AUTO or "
-        "BACKEND_CPU");
+        "header.options.backend: this server has no device executor (started "
+        "without --device=cuda or --device=emulated, built without CUDA, or "
+        "no GPU present); use BACKEND_AUTO or BACKEND_CPU");
   }
   const bool on_device = limits.has_device && asked != v1::BACKEND_CPU;
   const uint64_t device_bytes =

@@ -81,6 +81,9 @@ class DeployFilesTest(unittest.TestCase):
         container = sts["spec"]["template"]["spec"]["containers"][0]
         self.assertEqual(container["resources"]["limits"]["nvidia.com/gpu"], 1)
         self.assertEqual(container["image"], "kinetri-server:cuda")
+        # The CUDA backend is opt-in (the server's --device=auto keeps
+        # sessions on the CPU).
+        self.assertIn("--device=cuda", container["args"])
 
     def test_k8s_probes_use_grpc_health(self):
         docs = list(yaml.safe_load_all((DEPLOY / "k8s" / "kinetri.yaml").read_text()))
