@@ -100,7 +100,8 @@ done
 # 2. kinetri-bench at N points with the device engines beside the host ones
 #    (cross-checked between engines inside the benchmark).
 for n in ${SIZES//,/ }; do
-  timeout "$BENCH_S" stdbuf -oL "$B/bench/kinetri-bench" --sizes="$n" \
+  KINETRI_DEVICE_PROFILE=1 timeout "$BENCH_S" stdbuf -oL \
+    "$B/bench/kinetri-bench" --sizes="$n" \
     --steps=3 --workloads=brownian,paper \
     --engines=kinetri,kinetri-device,grid,grid-device \
     --query_points=100000 --json="$O/bench-$n.json" > "$O/bench-$n.log" 2>&1
