@@ -73,18 +73,19 @@ fi
 small='Kinetic.ShearFlow:Kinetic.ClusteringAggregationAndDispersal'
 small+=':Kinetic.HullExpandsAndContracts'
 for cfg in DEFAULT=1 CUDA_MODULE_LOADING=EAGER KINETRI_CUDA_STACK_BYTES=98304; do
-  env KINETRI_DEVICE_PROFILE=1 "$cfg" timeout 60 \
+  env KINETRI_DEVICE_PROFILE=2 "$cfg" timeout 60 \
     "$B/tests/kinetic_cuda_test" --gtest_filter="$small" \
     > "$O/profile_${cfg%%=*}.log" 2>&1
   note "profile with $cfg rc=$?"
-  grep -E 'OK \]|FAILED|profile\]' "$O/profile_${cfg%%=*}.log"
+  grep -E 'OK \]|FAILED|profile\] (cuda|emulated|queries|stack)' \
+    "$O/profile_${cfg%%=*}.log"
 done
 
 # 1. The typed suites on the CUDA backend, one after the other (processes
 #    sharing a GPU are time-sliced, which would blur the timings), each
 #    with the executor's profile at its end.
 for s in kinetic randomized queries join_leave; do
-  KINETRI_DEVICE_PROFILE=1 timeout "$TEST_S" "$B/tests/${s}_cuda_test" \
+  KINETRI_DEVICE_PROFILE=2 timeout "$TEST_S" "$B/tests/${s}_cuda_test" \
     --gtest_output="xml:$O/${s}.xml" > "$O/${s}.log" 2>&1
   rc=$?
   passed=$(grep -c '^\[       OK \]' "$O/${s}.log")
@@ -100,7 +101,7 @@ done
 # 2. kinetri-bench at N points with the device engines beside the host ones
 #    (cross-checked between engines inside the benchmark).
 for n in ${SIZES//,/ }; do
-  KINETRI_DEVICE_PROFILE=1 timeout "$BENCH_S" stdbuf -oL \
+  KINETRI_DEVICE_PROFILE=2 timeout "$BENCH_S" stdbuf -oL \
     "$B/bench/kinetri-bench" --sizes="$n" \
     --steps=3 --workloads=brownian,paper \
     --engines=kinetri,kinetri-device,grid,grid-device \

@@ -295,8 +295,16 @@ class QueryEngine {
     queries_.fetch_add(
         q.kind == DeviceQuery::Kind::kAllNearest ? view_.num_points : q.size(),
         std::memory_order_relaxed);
-    nanos_.fetch_add(static_cast<uint64_t>(SecondsSince(t0) * 1e9),
+    const double seconds = SecondsSince(t0);
+    nanos_.fetch_add(static_cast<uint64_t>(seconds * 1e9),
                      std::memory_order_relaxed);
+    if (ProfileEach()) {
+      std::fprintf(stderr, "[device profile] query: %zu queries, %.6f s%s\n",
+                   q.kind == DeviceQuery::Kind::kAllNearest
+                       ? size_t{view_.num_points}
+                       : q.size(),
+                   seconds, out.ok() ? "" : " (refused)");
+    }
     return out;
   }
 

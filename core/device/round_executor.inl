@@ -469,6 +469,16 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     totals_.fix_seconds += out.fix_seconds;
     totals_.legalize_seconds += out.legalize_seconds;
     totals_.transfer_seconds += out.transfer_seconds;
+    if (ProfileEach()) {
+      std::fprintf(stderr,
+                   "[device profile] attempt: %llu device algorithms, %u "
+                   "fixing and %u legalizing rounds, fix %.6f s, legalize "
+                   "%.6f s, transfers %.6f s%s\n",
+                   static_cast<unsigned long long>(out.device_calls),
+                   out.counts.fix_rounds, out.counts.legalize_rounds,
+                   out.fix_seconds, out.legalize_seconds, out.transfer_seconds,
+                   out.fixed ? "" : (out.tangled ? " (tangled)" : " (stuck)"));
+    }
     return out;
   }
 
