@@ -75,8 +75,10 @@ struct Result {
   long signature;  // sum of signs weighted by position (cross-check)
 };
 
-template <typename OrientFn, typename InCircleFn>
-Result Time(const std::vector<Vec2>& p, int reps, OrientFn orient,
+// Times orient over the first three points of each quadruple and incircle
+// over all four (signs converted to int by the callers' functions).
+template <typename Point, typename OrientFn, typename InCircleFn>
+Result Time(const std::vector<Point>& p, int reps, OrientFn orient,
             InCircleFn incircle) {
   const size_t quads = p.size() / 4;
   std::vector<double> o_ns, i_ns;
@@ -143,35 +145,20 @@ int main(int argc, char** argv) {
     std::vector<K::Point_2> cp;
     cp.reserve(in.points.size());
     for (const Vec2& v : in.points) cp.push_back(pt(v));
-    std::vector<double> o_ns, i_ns;
-    long signature = 0;
-    for (int r = 0; r < reps; ++r) {
-      long s = 0;
-      auto t0 = Clock::now();
-      for (size_t i = 0; i < quads; ++i) {
-        s += (i % 7 + 1) * static_cast<int>(cgal_orient(
-                               cp[4 * i], cp[4 * i + 1], cp[4 * i + 2]));
-      }
-      auto t1 = Clock::now();
-      for (size_t i = 0; i < quads; ++i) {
-        s += (i % 5 + 1) * 3 *
-             static_cast<int>(cgal_circle(cp[4 * i], cp[4 * i + 1],
-                                          cp[4 * i + 2], cp[4 * i + 3]));
-      }
-      auto t2 = Clock::now();
-      o_ns.push_back(std::chrono::duration<double, std::nano>(t1 - t0).count() /
-                     quads);
-      i_ns.push_back(std::chrono::duration<double, std::nano>(t2 - t1).count() /
-                     quads);
-      signature = s;
-    }
-    std::sort(o_ns.begin(), o_ns.end());
-    std::sort(i_ns.begin(), i_ns.end());
+    const Result cgal = Time(
+        cp, reps,
+        [&](const K::Point_2& a, const K::Point_2& b, const K::Point_2& c) {
+          return static_cast<int>(cgal_orient(a, b, c));
+        },
+        [&](const K::Point_2& a, const K::Point_2& b, const K::Point_2& c,
+            const K::Point_2& d) {
+          return static_cast<int>(cgal_circle(a, b, c, d));
+        });
     std::printf("%-11s %-8s %12.1f %12.1f\n", in.name, "kinetri",
                 ours.orient_ns, ours.incircle_ns);
-    std::printf("%-11s %-8s %12.1f %12.1f\n", in.name, "cgal",
-                o_ns[o_ns.size() / 2], i_ns[i_ns.size() / 2]);
-    if (signature != ours.signature) {
+    std::printf("%-11s %-8s %12.1f %12.1f\n", in.name, "cgal", cgal.orient_ns,
+                cgal.incircle_ns);
+    if (cgal.signature != ours.signature) {
       std::printf("MISMATCH on %s: signs differ from CGAL's\n", in.name);
       ++mismatches;
     }
