@@ -133,7 +133,7 @@ int main(int argc, char** argv) {
           "with and without a caching allocator, and a kernel with a large "
           "stack frame before and after raising the stack limit to BYTES "
           "(default 98304; 0: leave it).\n");
-      return argv[i][2] == 'h' ? 0 : 2;
+      return std::strcmp(argv[i], "--help") == 0 ? 0 : 2;
     }
   }
   int count = 0;

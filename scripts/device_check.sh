@@ -48,7 +48,7 @@ mkdir -p "$OUT_DIR"
 O=$(mktemp -d)
 pack() { tar czf "$OUT_DIR/logs.tgz" -C "$O" .; }
 if [[ -d $B/devlibs ]]; then
-  export LD_LIBRARY_PATH="$PWD/$B/devlibs:${LD_LIBRARY_PATH:-}"
+  export LD_LIBRARY_PATH="$(cd "$B/devlibs" && pwd):${LD_LIBRARY_PATH:-}"
 fi
 summary=()
 note() {

@@ -27,7 +27,7 @@ uint64_t GpuFreeBytes() {
 
 std::unique_ptr<DeviceExecutor> MakeCudaExecutor() {
   // The exact predicates keep their expansions in per-thread local memory
-  // (EdgeIllegal's kernel has the largest frame, about 58 KiB; ptxas sizes
+  // (EdgeIllegal's kernel has the largest frame, about 45 KiB; ptxas sizes
   // every frame statically: no recursion, no alloca). The driver raises the
   // per-thread stack to what a launch needs, once, so the limit is left
   // alone by default; it used to be raised to 96 KiB here, which only

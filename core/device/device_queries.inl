@@ -449,7 +449,9 @@ class QueryEngine {
   void Release(Scratch* s) {
     // A big answer's buffers are not kept (kDeviceQueryScratchBytes).
     if (s->bytes() > kDeviceQueryScratchBytes) *s = Scratch{};
-    pool_.Trim(kDeviceQueryScratchBytes);
+    // The pool's blocks serve the blocks of one call; none is kept after
+    // it (kDeviceQueryScratchBytes bounds what stays, the Scratch above).
+    pool_.Trim(0);
     std::lock_guard<std::mutex> lock(mu_);
     free_.push_back(s);
   }

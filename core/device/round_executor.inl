@@ -407,11 +407,6 @@ double Since(std::chrono::steady_clock::time_point t0) {
       .count();
 }
 
-void SortUnique(ScratchPool& pool, U32Vector& v) {
-  thr::sort(Policy(pool), v.begin(), v.end());
-  v.erase(thr::unique(Policy(pool), v.begin(), v.end()), v.end());
-}
-
 class RoundDeviceExecutor final : public DeviceExecutor {
  public:
   explicit RoundDeviceExecutor(DeviceBackend backend) : backend_(backend) {}
@@ -477,7 +472,10 @@ class RoundDeviceExecutor final : public DeviceExecutor {
                    static_cast<unsigned long long>(out.device_calls),
                    out.counts.fix_rounds, out.counts.legalize_rounds,
                    out.fix_seconds, out.legalize_seconds, out.transfer_seconds,
-                   out.fixed ? "" : (out.tangled ? " (tangled)" : " (stuck)"));
+                   out.fixed       ? ""
+                   : out.cancelled ? " (cancelled)"
+                   : out.tangled   ? " (tangled)"
+                                   : " (stuck)");
     }
     return out;
   }
@@ -531,7 +529,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
                                TriangleBad{m, p}),
                   work_.end());
     }
-    SortUnique(pool_, work_);
+    SortUnique(work_);
     touched_.clear();
     const bool keep_touched = seeds != nullptr;
     stale_ = true;  // until the result is downloaded
@@ -556,11 +554,11 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       thr::copy(seeds->begin(), seeds->end(), next_.begin());
       thr::copy(touched_.begin(), touched_.end(), next_.begin() + ns);
       out.bytes_uploaded += 4ull * ns;
-      SortUnique(pool_, next_);
+      SortUnique(next_);
       work_.resize(3 * next_.size());
       thr::for_each(P(), Count(0), Count(static_cast<uint32_t>(next_.size())),
                     TriangleEdges{m, Raw(next_), Raw(work_)});
-      SortUnique(pool_, work_);
+      SortUnique(work_);
     }
     if (!Legalize(m, p, cancel, &out.counts)) {
       out.legalize_seconds = Since(t0);
@@ -589,6 +587,11 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   PoolPolicy P() {
     ++calls_;
     return Policy(pool_);
+  }
+
+  void SortUnique(U32Vector& v) {
+    thr::sort(P(), v.begin(), v.end());
+    v.erase(thr::unique(P(), v.begin(), v.end()), v.end());
   }
 
   // Fixing rounds over work_ (sorted, unique). 1: fixed (and the hull winds
@@ -652,7 +655,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
                                           KindIs{rules::kHullAbsorb});
       counts.hull_release += thr::count_if(P(), bad_.begin(), bad_.end(),
                                            KindIs{rules::kHullRelease});
-      SortUnique(pool_, next_);
+      SortUnique(next_);
       work_.swap(next_);
     }
     const HullCount hull = thr::transform_reduce(
@@ -717,7 +720,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
                     OuterEdges{m, Raw(win_edges_), Raw(work_)});
       ++counts->legalize_rounds;
       counts->delaunay += nw;
-      SortUnique(pool_, work_);
+      SortUnique(work_);
     }
   }
 

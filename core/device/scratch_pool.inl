@@ -41,10 +41,16 @@ class ScratchPool {
   ScratchPool() = default;
   ScratchPool(const ScratchPool&) = delete;
   ScratchPool& operator=(const ScratchPool&) = delete;
-  ~ScratchPool() { Trim(0); }
+  ~ScratchPool() {
+    try {
+      Trim(0);
+    } catch (...) {  // a device already in error: nothing more to free
+    }
+  }
 
   char* allocate(std::ptrdiff_t n) {
     const int c = ClassOf(static_cast<size_t>(n));
+    if (c >= kClasses) throw std::bad_alloc();
     {
       std::lock_guard<std::mutex> lock(mu_);
       if (!free_[c].empty()) {
