@@ -12,7 +12,7 @@
 // scan the counts into offsets, fill the rows, put them in the exact order
 // of core/queries.h with one sort, and download. Between blocks the host
 // polls the cancellation token and checks the total limit; block sizes
-// adapt so that a block takes about kBlockTargetSeconds.
+// adapt so that a block takes about BlockSizer::kTargetSeconds.
 #ifndef KINETRI_DEVICE_NS
 #error "define KINETRI_DEVICE_NS before including device_queries.inl"
 #endif
@@ -38,6 +38,7 @@
 #include <type_traits>
 #include <vector>
 
+#include "core/device/block_sizer.h"
 #include "core/device/device_executor.h"
 #include "core/device/scratch_pool.inl"
 #include "core/hint_grid.h"
@@ -485,7 +486,7 @@ class QueryEngine {
             : SIZE_MAX;
     const size_t max_block = std::min(
         max_block_memory, large_blocks ? kMaxBlockLarge : kMaxBlockSmall);
-    size_t block = std::min<size_t>(kFirstBlock, max_block);
+    BlockSizer blocks(max_block, /*fixed_cost_aware=*/large_blocks);
     uint64_t total = 0;
     uint64_t granted = 0;  // by q.limits.admit
     if (knn && view_.num_points > q.k) {
@@ -506,7 +507,8 @@ class QueryEngine {
         if (absl::Status s = cancel->Check("query"); !s.ok()) return s;
       }
       const auto t0 = std::chrono::steady_clock::now();
-      const uint32_t nb = static_cast<uint32_t>(std::min(block, nq - begin));
+      const uint32_t nb =
+          static_cast<uint32_t>(std::min(blocks.size(), nq - begin));
       blocks_.fetch_add(1, std::memory_order_relaxed);
       Prepare(q, begin, nb, w);
       const uint64_t remaining = limit ? limit - total : UINT64_MAX;
@@ -531,13 +533,7 @@ class QueryEngine {
       }
       total += rows_total;
       begin += nb;
-      // Next block: about kBlockTargetSeconds of work.
-      const double s = SecondsSince(t0);
-      if (s < kBlockTargetSeconds / 2) {
-        block = std::min(block * 2, max_block);
-      } else if (s > kBlockTargetSeconds * 2 && block > 1) {
-        block = std::max<size_t>(1, block / 2);
-      }
+      blocks.Done(nb, SecondsSince(t0));
     }
     return absl::OkStatus();
   }
@@ -642,13 +638,10 @@ class QueryEngine {
     return total;
   }
 
-  // First block of a batch; blocks then double while they take less than
-  // half the target, up to the largest size (GPUs need many queries in
-  // flight; CPU threads few).
-  static constexpr size_t kFirstBlock = 2;
+  // Largest blocks (GPUs need many queries in flight; CPU threads few);
+  // core/device/block_sizer.h sizes each block.
   static constexpr size_t kMaxBlockSmall = size_t{1} << 14;
   static constexpr size_t kMaxBlockLarge = size_t{1} << 20;
-  static constexpr double kBlockTargetSeconds = 0.008;
   static constexpr size_t kMaxSlotBytes = size_t{64} << 20;
 
   mutable std::mutex mu_;

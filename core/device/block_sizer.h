@@ -1,0 +1,71 @@
+// How many queries the device executor runs per block
+// (core/device/device_queries.inl). Between blocks the host polls
+// cancellation and checks the total limit, so a block should take about
+// kTargetSeconds; its size adapts to the times the blocks took.
+//
+// On CPU threads (the emulated backend) a block's time is all work: a
+// block doubles while it takes under half the target and halves while it
+// takes over twice the target. On a GPU each block also pays a fixed cost
+// (a dozen synchronous device calls; on the first GPU runs about a
+// millisecond each, docs/DEVICE.md), and a block whose fixed cost alone was
+// over half the target never grew past its first 2 queries. There a block
+// also doubles when its time is mostly that fixed cost: after the first
+// block, or when it took well under twice its half-size predecessor's time,
+// as long as it stays under kLimitSeconds (or twice the quickest block's
+// time, where the fixed cost alone is over that); and it halves only when it
+// took over twice the quickest block's time too (halving cannot shorten a block
+// that is all fixed cost). Host code only, so it is tested without a GPU.
+#ifndef KINETRI_CORE_DEVICE_BLOCK_SIZER_H_
+#define KINETRI_CORE_DEVICE_BLOCK_SIZER_H_
+
+#include <algorithm>
+#include <cstddef>
+
+namespace kinetri::core::device {
+
+class BlockSizer {
+ public:
+  static constexpr size_t kFirstBlock = 2;
+  static constexpr double kTargetSeconds = 0.008;
+  static constexpr double kLimitSeconds = 0.025;
+
+  // Blocks of at most max_block queries; fixed_cost_aware on a GPU.
+  BlockSizer(size_t max_block, bool fixed_cost_aware)
+      : max_(std::max<size_t>(1, max_block)),
+        fixed_cost_aware_(fixed_cost_aware),
+        block_(std::min(kFirstBlock, max_)) {}
+
+  // The size of the next block.
+  size_t size() const { return block_; }
+
+  // A block of n queries took `seconds`: sets the next size.
+  void Done(size_t n, double seconds) {
+    min_seconds_ = std::min(min_seconds_, seconds);
+    const bool fixed_cost_bound =
+        fixed_cost_aware_ &&
+        (last_n_ == 0 || (n >= 2 * last_n_ && seconds < 1.5 * last_seconds_));
+    last_n_ = n;
+    last_seconds_ = seconds;
+    if (seconds < kTargetSeconds / 2 ||
+        (fixed_cost_bound &&
+         seconds < std::max(kLimitSeconds, 2 * min_seconds_))) {
+      block_ = std::min(block_ * 2, max_);
+    } else if (seconds > kTargetSeconds * 2 &&
+               (!fixed_cost_aware_ || seconds > 2 * min_seconds_) &&
+               block_ > 1) {
+      block_ /= 2;
+    }
+  }
+
+ private:
+  size_t max_;
+  bool fixed_cost_aware_;
+  size_t block_;
+  size_t last_n_ = 0;  // the previous block's size and seconds
+  double last_seconds_ = 0.0;
+  double min_seconds_ = 1e300;  // the quickest block (about its fixed cost)
+};
+
+}  // namespace kinetri::core::device
+
+#endif  // KINETRI_CORE_DEVICE_BLOCK_SIZER_H_

@@ -1,0 +1,87 @@
+// The device executor's query block sizes (core/device/block_sizer.h), on
+// blocks whose time is a fixed cost plus a cost per query.
+#include "core/device/block_sizer.h"
+
+#include <gtest/gtest.h>
+
+#include <vector>
+
+namespace kinetri::core::device {
+namespace {
+
+struct Blocks {
+  std::vector<size_t> sizes;
+  double longest = 0.0;  // seconds of the longest block
+  size_t blocks = 0;
+};
+
+// Runs `queries` queries in blocks, each taking fixed + per_query * n.
+Blocks Simulate(size_t queries, size_t max_block, bool fixed_cost_aware,
+                double fixed, double per_query) {
+  BlockSizer sizer(max_block, fixed_cost_aware);
+  Blocks run;
+  for (size_t done = 0; done < queries;) {
+    const size_t n = std::min(sizer.size(), queries - done);
+    const double seconds = fixed + per_query * double(n);
+    run.sizes.push_back(n);
+    run.longest = std::max(run.longest, seconds);
+    ++run.blocks;
+    sizer.Done(n, seconds);
+    done += n;
+  }
+  return run;
+}
+
+TEST(BlockSizer, CpuBlocksGrowWhileCheapAndStayNearTheTarget) {
+  // 1 us per query: blocks double from 2 ...
+  Blocks cheap = Simulate(100000, 1 << 14, false, 0.0, 1e-6);
+  EXPECT_EQ(cheap.sizes.front(), BlockSizer::kFirstBlock);
+  EXPECT_EQ(cheap.sizes[5], 64u);
+  // ... until a block takes at least half the target (4096 queries).
+  EXPECT_EQ(cheap.sizes[cheap.sizes.size() - 2], 4096u);
+  EXPECT_LE(cheap.longest, 2 * BlockSizer::kTargetSeconds);
+  // 6 ms per query (rows of thousands of points): blocks stay at a size
+  // whose time is within twice the target, so cancellation, polled between
+  // blocks, stops the work soon.
+  Blocks heavy = Simulate(200, 1 << 14, false, 0.0, 6e-3);
+  EXPECT_LE(heavy.longest, 2 * BlockSizer::kTargetSeconds);
+}
+
+TEST(BlockSizer, GpuBlocksOutgrowAFixedCostOverTheTarget) {
+  // 12 ms per block whatever its size, 10 ns per query: the rule of the CPU
+  // would keep 2 queries per block (50,000 blocks for 100K queries).
+  Blocks cpu_rule = Simulate(100000, 1 << 20, false, 12e-3, 1e-8);
+  EXPECT_EQ(cpu_rule.sizes.back(), BlockSizer::kFirstBlock);
+  EXPECT_GT(cpu_rule.blocks, 40000u);
+  Blocks gpu = Simulate(100000, 1 << 20, true, 12e-3, 1e-8);
+  EXPECT_LT(gpu.blocks, 20u);
+  EXPECT_LE(gpu.longest, BlockSizer::kLimitSeconds);
+  // A fixed cost over the limit still lets blocks grow (up to twice it).
+  Blocks slow = Simulate(100000, 1 << 20, true, 40e-3, 1e-8);
+  EXPECT_LT(slow.blocks, 20u);
+  EXPECT_LE(slow.longest, 2 * 40e-3 + 1e-3);
+}
+
+TEST(BlockSizer, GpuBlocksOfHeavyQueriesStayShort) {
+  // 6 ms per query on top of a 0.1 ms block cost: no growth past what
+  // keeps a block near the target.
+  Blocks heavy = Simulate(200, 1 << 20, true, 1e-4, 6e-3);
+  EXPECT_LE(heavy.longest, BlockSizer::kLimitSeconds);
+  // Blocks that got slower (the GPU got busy) shrink again.
+  BlockSizer sizer(1 << 20, true);
+  for (int i = 0; i < 12; ++i) sizer.Done(sizer.size(), 1e-3);
+  const size_t grown = sizer.size();
+  EXPECT_GT(grown, 1000u);
+  sizer.Done(grown, 0.2);
+  EXPECT_EQ(sizer.size(), grown / 2);
+}
+
+TEST(BlockSizer, NeverBeyondTheLargestBlock) {
+  Blocks run = Simulate(1000000, 5000, true, 1e-3, 0.0);
+  for (size_t n : run.sizes) EXPECT_LE(n, 5000u);
+  BlockSizer one(1, false);
+  EXPECT_EQ(one.size(), 1u);
+}
+
+}  // namespace
+}  // namespace kinetri::core::device
