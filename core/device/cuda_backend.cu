@@ -9,6 +9,7 @@
 #include <cstdlib>
 
 #include "core/device/cuda_backend.h"
+#include "core/device/profile.h"
 #include "core/device/round_executor.inl"
 
 namespace kinetri::core::device {
@@ -42,7 +43,7 @@ std::unique_ptr<DeviceExecutor> MakeCudaExecutor() {
     const cudaError_t e = bytes != 0
                               ? cudaDeviceSetLimit(cudaLimitStackSize, bytes)
                               : cudaSuccess;
-    if (std::getenv("KINETRI_DEVICE_PROFILE") != nullptr) {
+    if (DeviceProfileLevel() > 0) {
       size_t now = 0;
       cudaDeviceGetLimit(&now, cudaLimitStackSize);
       std::fprintf(stderr,

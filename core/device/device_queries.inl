@@ -40,6 +40,7 @@
 
 #include "core/device/block_sizer.h"
 #include "core/device/device_executor.h"
+#include "core/device/profile.h"
 #include "core/device/scratch_pool.inl"
 #include "core/hint_grid.h"
 #include "core/query_search.h"
@@ -275,7 +276,7 @@ class QueryEngine {
   QueryEngine(const QueryEngine&) = delete;
   QueryEngine& operator=(const QueryEngine&) = delete;
   ~QueryEngine() {
-    if (std::getenv("KINETRI_DEVICE_PROFILE") == nullptr) return;
+    if (DeviceProfileLevel() == 0) return;
     std::fprintf(stderr,
                  "[device profile] queries: %llu calls, %llu blocks, %llu "
                  "queries, %llu device algorithms, %.3f s\n",
@@ -292,19 +293,16 @@ class QueryEngine {
     const auto t0 = std::chrono::steady_clock::now();
     absl::StatusOr<NeighborLists> out =
         RunQuery(host, generation, q, large_blocks);
+    const size_t count =
+        q.kind == DeviceQuery::Kind::kAllNearest ? view_.num_points : q.size();
     runs_.fetch_add(1, std::memory_order_relaxed);
-    queries_.fetch_add(
-        q.kind == DeviceQuery::Kind::kAllNearest ? view_.num_points : q.size(),
-        std::memory_order_relaxed);
+    queries_.fetch_add(count, std::memory_order_relaxed);
     const double seconds = SecondsSince(t0);
     nanos_.fetch_add(static_cast<uint64_t>(seconds * 1e9),
                      std::memory_order_relaxed);
-    if (ProfileEach()) {
+    if (DeviceProfileLevel() >= 2) {
       std::fprintf(stderr, "[device profile] query: %zu queries, %.6f s%s\n",
-                   q.kind == DeviceQuery::Kind::kAllNearest
-                       ? size_t{view_.num_points}
-                       : q.size(),
-                   seconds, out.ok() ? "" : " (refused)");
+                   count, seconds, out.ok() ? "" : " (refused)");
     }
     return out;
   }

@@ -41,6 +41,7 @@
 #include "core/device/atomic.h"
 #include "core/device/device_executor.h"
 #include "core/device/device_queries.inl"
+#include "core/device/profile.h"
 #include "core/device/scratch_pool.inl"
 #include "core/flip_rules.h"
 #include "core/mesh.h"
@@ -435,7 +436,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   }
 
   ~RoundDeviceExecutor() override {
-    if (std::getenv("KINETRI_DEVICE_PROFILE") == nullptr) return;
+    if (DeviceProfileLevel() == 0) return;
     std::fprintf(
         stderr,
         "[device profile] %s executor: %llu attempts, %llu fixing "
@@ -464,7 +465,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     totals_.fix_seconds += out.fix_seconds;
     totals_.legalize_seconds += out.legalize_seconds;
     totals_.transfer_seconds += out.transfer_seconds;
-    if (ProfileEach()) {
+    if (DeviceProfileLevel() >= 2) {
       std::fprintf(stderr,
                    "[device profile] attempt: %llu device algorithms, %u "
                    "fixing and %u legalizing rounds, fix %.6f s, legalize "

@@ -121,16 +121,6 @@ class ScratchPool {
   size_t cached_bytes_ = 0;
 };
 
-// KINETRI_DEVICE_PROFILE=2: the executor prints a line per attempt and per
-// query call too (a run cut off by a time limit still leaves them).
-inline bool ProfileEach() {
-  static const bool each = [] {
-    const char* v = std::getenv("KINETRI_DEVICE_PROFILE");
-    return v != nullptr && v[0] == '2';
-  }();
-  return each;
-}
-
 // The execution policy of every Thrust call of the executor: the device
 // system, with temporary storage from `pool`.
 using PoolPolicy = decltype(pthr::device(std::declval<ScratchPool&>()));
