@@ -7,16 +7,18 @@
 #   cmake -S . -B build-cuda -G Ninja -DCMAKE_BUILD_TYPE=Release \
 #     -DCMAKE_CUDA_ARCHITECTURES=90 -DCMAKE_CUDA_FLAGS=-lineinfo \
 #     -DKINETRI_CUDA=ON -DKINETRI_BUILD_SERVICE=OFF
-#   ninja -C build-cuda kinetic_cuda_test randomized_cuda_test \
-#     queries_cuda_test join_leave_cuda_test kinetri-bench kinetri-device-probe
+#   ninja -C build-cuda device_predicates_cuda_test kinetic_cuda_test \
+#     randomized_cuda_test queries_cuda_test join_leave_cuda_test \
+#     kinetri-bench kinetri-device-probe
 #   scripts/device_check.sh --collect-libs build-cuda
 # --collect-libs copies the shared libraries the binaries need beyond the C
 # library into build-cuda/devlibs, so the folder runs on a machine without
 # our Debian packages. Then, on the GPU machine:
 #   scripts/device_check.sh build-cuda OUT_DIR [BENCH_SIZES]
 # Every stage has its own time limit (seconds: TEST_S for the suites, BENCH_S
-# for each benchmark size, SAN_S for each sanitizer run); the logs and gtest
-# XML go to OUT_DIR and a short table is printed last.
+# for each benchmark size, SAN_S for each sanitizer run); STAGES picks the
+# stages (default "0 1 2 3") and BENCH_STEPS the benchmark's steps (3); the
+# logs and gtest XML go to OUT_DIR and a short table is printed last.
 set -uo pipefail
 
 if [[ ${1:-} == --collect-libs ]]; then
@@ -42,6 +44,10 @@ SIZES=${3:-100000,1000000}
 TEST_S=${TEST_S:-150}
 BENCH_S=${BENCH_S:-180}
 SAN_S=${SAN_S:-60}
+# STAGES picks which of the stages below run (0: what one call costs;
+# 1: the typed suites; 2: the benchmark; 3: compute-sanitizer).
+STAGES=${STAGES:-0 1 2 3}
+want() { [[ " $STAGES " == *" $1 "* ]]; }
 # Logs are written to $O and packed into OUT_DIR/logs.tgz after every stage
 # (so a machine that returns only a few files still returns them all).
 mkdir -p "$OUT_DIR"
@@ -59,12 +65,34 @@ note() {
 
 nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.sm,clocks.mem \
   --format=csv | tee "$O/gpu.txt"
+# Who else is on this GPU (processes of other tenants time-slice with ours).
+nvidia-smi --query-compute-apps=pid,process_name,used_memory --format=csv \
+  >> "$O/gpu.txt" 2>&1
+nvidia-smi -q -d COMPUTE >> "$O/gpu.txt" 2>&1
 # What each runtime call costs on this machine (CuPy, where installed).
 timeout 30 python3 "$(dirname "$0")/device_probe.py" | tee "$O/probe.txt"
 
-# 0. What one device algorithm costs, and what changes it: the probe alone,
-#    then three small kinetic tests with the executor's profile under the
-#    default settings, eager module loading, and a 96 KiB stack limit.
+if want 0; then
+# 0. Are the exact predicates right in device code, and is it the stack?
+#    The predicates test and two small query tests under the stack limit
+#    the driver picks and under a 96 KiB limit (docs/DEVICE.md: on the
+#    second H200 lease the exact fallbacks crashed or gave wrong signs).
+#    Then what one device algorithm costs: the probe alone, three small
+#    kinetic tests with the executor's profile by call site, and the
+#    kernels' own times under Nsight Compute.
+qsmall='Queries.TinySets:Queries.LatticeWithManyTies:Queries.Collinear'
+for cfg in DEFAULT=1 KINETRI_CUDA_STACK_BYTES=98304; do
+  tag=${cfg%%=*}
+  env "$cfg" timeout 60 "$B/tests/device_predicates_cuda_test" \
+    > "$O/predicates_${tag}.log" 2>&1
+  note "device_predicates_cuda_test with $cfg rc=$?"
+  grep -E 'OK \]|FAILED \]|disagree|stack limit|what\(\)' \
+    "$O/predicates_${tag}.log" | head -20
+  env "$cfg" timeout 30 "$B/tests/queries_cuda_test" --gtest_filter="$qsmall" \
+    > "$O/queries_small_${tag}.log" 2>&1
+  note "small query tests with $cfg rc=$?"
+  grep -E 'OK \]|FAILED \]|what\(\)' "$O/queries_small_${tag}.log"
+done
 if [[ -x $B/bench/kinetri-device-probe ]]; then
   timeout 60 "$B/bench/kinetri-device-probe" > "$O/call_probe.txt" 2>&1
   note "kinetri-device-probe rc=$?"
@@ -72,19 +100,28 @@ if [[ -x $B/bench/kinetri-device-probe ]]; then
 fi
 small='Kinetic.ShearFlow:Kinetic.ClusteringAggregationAndDispersal'
 small+=':Kinetic.HullExpandsAndContracts'
-for cfg in DEFAULT=1 CUDA_MODULE_LOADING=EAGER KINETRI_CUDA_STACK_BYTES=98304; do
-  env KINETRI_DEVICE_PROFILE=2 "$cfg" timeout 60 \
-    "$B/tests/kinetic_cuda_test" --gtest_filter="$small" \
-    > "$O/profile_${cfg%%=*}.log" 2>&1
-  note "profile with $cfg rc=$?"
-  grep -E 'OK \]|FAILED|profile\] (cuda|emulated|queries|stack)' \
-    "$O/profile_${cfg%%=*}.log"
-done
+KINETRI_DEVICE_PROFILE=2 timeout 60 "$B/tests/kinetic_cuda_test" \
+  --gtest_filter="$small" > "$O/profile.log" 2>&1
+note "kinetic profile rc=$?"
+grep -E 'OK \]|FAILED|profile\] (cuda|emulated|queries|stack|time by)|\.inl:' \
+  "$O/profile.log" | head -60
+# How long the kernels themselves run: 60 launches of one small test,
+# after its first 300 (Nsight Compute, clocks left as they are).
+if command -v ncu > /dev/null; then
+  timeout 90 ncu --clock-control none --launch-skip 300 --launch-count 60 \
+    --metrics gpu__time_duration.sum --csv "$B/tests/kinetic_cuda_test" \
+    --gtest_filter=Kinetic.ShearFlow > "$O/ncu.csv" 2>&1
+  note "ncu ShearFlow rc=$?"
+  grep gpu__time_duration "$O/ncu.csv" | awk -F'","' \
+    '{n=$5; sub(/\(.*/, "", n); print substr(n, 1, 60), $NF}' | head -60
+fi
+fi
 
+if want 1; then
 # 1. The typed suites on the CUDA backend, one after the other (processes
 #    sharing a GPU are time-sliced, which would blur the timings), each
 #    with the executor's profile at its end.
-for s in kinetic randomized queries join_leave; do
+for s in device_predicates kinetic queries join_leave randomized; do
   KINETRI_DEVICE_PROFILE=2 timeout "$TEST_S" "$B/tests/${s}_cuda_test" \
     --gtest_output="xml:$O/${s}.xml" > "$O/${s}.log" 2>&1
   rc=$?
@@ -97,21 +134,26 @@ for s in kinetic randomized queries join_leave; do
     "skipped=$skipped ${took:-}"
   grep -E '^\[  FAILED  \]|Failure|error' "$O/${s}.log" | head -20
 done
+fi
 
+if want 2; then
 # 2. kinetri-bench at N points with the device engines beside the host ones
 #    (cross-checked between engines inside the benchmark).
 for n in ${SIZES//,/ }; do
   KINETRI_DEVICE_PROFILE=2 timeout "$BENCH_S" stdbuf -oL \
     "$B/bench/kinetri-bench" --sizes="$n" \
-    --steps=3 --workloads=brownian,paper \
+    --steps="${BENCH_STEPS:-3}" --workloads=brownian,paper \
     --engines=kinetri,kinetri-device,grid,grid-device \
     --query_points=100000 --json="$O/bench-$n.json" > "$O/bench-$n.log" 2>&1
   note "kinetri-bench n=$n rc=$?"
   grep -E 'kinetri-device|grid-device|\] ' "$O/bench-$n.log" | tail -40
 done
+fi
 
 # 3. compute-sanitizer over small tests (it slows kernels many times).
-if command -v compute-sanitizer > /dev/null; then
+if ! want 3; then
+  :
+elif command -v compute-sanitizer > /dev/null; then
   kfilter='Kinetic.ShearFlow:Kinetic.DuplicatesMergeAndSeparate'
   kfilter+=':Kinetic.CollinearBecomesPlanarAndBack:Kinetic.HeldVerticesCollide'
   qfilter='Queries.TinySets:Queries.Duplicates:Queries.Collinear'

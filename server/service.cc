@@ -340,8 +340,8 @@ grpc::Status KinetriServiceImpl::CreateSessionFromBytes(
     return grpc::Status(
         grpc::StatusCode::FAILED_PRECONDITION,
         "header.options.backend: this server has no device executor (started "
-        "without --device=cuda or --device=emulated, built without CUDA, or "
-        "no GPU present); use BACKEND_AUTO or BACKEND_CPU");
+        "without --device=emulated; the CUDA backend is refused for now, "
+        "docs/DEVICE.md); use BACKEND_AUTO or BACKEND_CPU");
   }
   const bool on_device = limits.has_device && asked != v1::BACKEND_CPU;
   const uint64_t device_bytes =

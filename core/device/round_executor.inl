@@ -448,6 +448,10 @@ class RoundDeviceExecutor final : public DeviceExecutor {
         static_cast<unsigned long long>(totals_.counts.legalize_rounds),
         static_cast<unsigned long long>(totals_.calls), totals_.fix_seconds,
         totals_.legalize_seconds, totals_.transfer_seconds);
+    std::fprintf(stderr,
+                 "[device profile] time by call site (each algorithm and the "
+                 "host work after it; line 0: before the first):\n");
+    clock_.Print(stderr, "round_executor.inl", 16);
   }
 
   absl::StatusOr<DeviceAttempt> Attempt(Mesh& mesh, absl::Span<const Vec2> to,
@@ -456,8 +460,10 @@ class RoundDeviceExecutor final : public DeviceExecutor {
                                         double rebuild_fraction,
                                         const CancelToken* cancel) override {
     const uint64_t calls = calls_;
+    clock_.Mark(0);  // line 0: the attempt's start up to its first algorithm
     DeviceAttempt out =
         AttemptOnDevice(mesh, to, candidates, seeds, rebuild_fraction, cancel);
+    clock_.Stop();
     out.device_calls = calls_ - calls;
     ++totals_.attempts;
     totals_.calls += out.device_calls;
@@ -569,6 +575,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     out.legalize_seconds = Since(t0);
 
     // Download: the host mesh becomes the device mesh.
+    clock_.Mark(__LINE__);
     t0 = std::chrono::steady_clock::now();
     std::vector<uint32_t> origin(origin_.size()), twin(twin_.size()),
         vertex_edge(nv);
@@ -584,9 +591,10 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   }
 
   // The policy of every Thrust algorithm below (temporaries from pool_);
-  // each call counts one device algorithm.
-  PoolPolicy P() {
+  // each call counts one device algorithm, and marks its line on clock_.
+  PoolPolicy P(int line = __builtin_LINE()) {
     ++calls_;
+    clock_.Mark(line);
     return Policy(pool_);
   }
 
@@ -773,6 +781,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   thr::device_vector<rules::FixProposal> props_;
   ScratchPool pool_;    // Thrust's temporaries, kept across rounds and steps
   uint64_t calls_ = 0;  // device algorithms launched (P() calls)
+  CallSiteClock clock_;  // where the attempts' time goes, by call site
   // Over the executor's life (KINETRI_DEVICE_PROFILE prints them).
   struct Totals {
     uint64_t attempts = 0;
