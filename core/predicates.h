@@ -54,8 +54,8 @@ inline constexpr double kDistErrBound = 16.0 * kEps;
 
 KINETRI_HD inline int SignOf(double v) { return (v > 0.0) - (v < 0.0); }
 
-KINETRI_HD KINETRI_COLD inline int Orient2dExact(const Vec2& a, const Vec2& b,
-                                                 const Vec2& c) {
+KINETRI_HD inline int Orient2dExactBody(const Vec2& a, const Vec2& b,
+                                        const Vec2& c) {
   using namespace exact;
   const Expansion<2> acx = Diff(a.x, c.x), acy = Diff(a.y, c.y);
   const Expansion<2> bcx = Diff(b.x, c.x), bcy = Diff(b.y, c.y);
@@ -68,8 +68,8 @@ KINETRI_HD KINETRI_COLD inline int Orient2dExact(const Vec2& a, const Vec2& b,
   return Sign(det);
 }
 
-KINETRI_HD KINETRI_COLD inline int InCircleExact(const Vec2& a, const Vec2& b,
-                                                 const Vec2& c, const Vec2& d) {
+KINETRI_HD inline int InCircleExactBody(const Vec2& a, const Vec2& b,
+                                        const Vec2& c, const Vec2& d) {
   using namespace exact;
   const Expansion<2> adx = Diff(a.x, d.x), ady = Diff(a.y, d.y);
   const Expansion<2> bdx = Diff(b.x, d.x), bdy = Diff(b.y, d.y);
@@ -102,9 +102,8 @@ KINETRI_HD KINETRI_COLD inline int InCircleExact(const Vec2& a, const Vec2& b,
   return Sign(det);
 }
 
-KINETRI_HD KINETRI_COLD inline int CompareDistanceExact(const Vec2& q,
-                                                        const Vec2& a,
-                                                        const Vec2& b) {
+KINETRI_HD inline int CompareDistanceExactBody(const Vec2& q, const Vec2& a,
+                                               const Vec2& b) {
   using namespace exact;
   const Expansion<2> ax = Diff(q.x, a.x), ay = Diff(q.y, a.y);
   const Expansion<2> bx = Diff(q.x, b.x), by = Diff(q.y, b.y);
@@ -122,9 +121,9 @@ KINETRI_HD KINETRI_COLD inline int CompareDistanceExact(const Vec2& q,
   return Sign(det);
 }
 
-KINETRI_HD KINETRI_COLD inline int CompareDistanceToRadiusExact(const Vec2& q,
-                                                                const Vec2& p,
-                                                                double r) {
+KINETRI_HD inline int CompareDistanceToRadiusExactBody(const Vec2& q,
+                                                       const Vec2& p,
+                                                       double r) {
   using namespace exact;
   const Expansion<2> dx = Diff(q.x, p.x), dy = Diff(q.y, p.y);
   Expansion<8> xx, yy;
@@ -142,6 +141,55 @@ KINETRI_HD KINETRI_COLD inline int CompareDistanceToRadiusExact(const Vec2& q,
   Sum(d, rr, det);
   return Sign(det);
 }
+
+// The exact fallbacks as called: out of line (KINETRI_COLD). The CUDA
+// build's device code (KINETRI_EXACT_EXTERN) calls them as true functions
+// of core/device/exact_extern.cu, relocatable device code compiled at NVVM
+// -O1 (docs/DEVICE.md: at -O3 CUDA 13.0 got them wrong on an H200).
+#if defined(__CUDA_ARCH__) && defined(KINETRI_EXACT_EXTERN)
+__device__ int Orient2dExactExtern(const Vec2& a, const Vec2& b, const Vec2& c);
+__device__ int InCircleExactExtern(const Vec2& a, const Vec2& b, const Vec2& c,
+                                   const Vec2& d);
+__device__ int CompareDistanceExactExtern(const Vec2& q, const Vec2& a,
+                                          const Vec2& b);
+__device__ int CompareDistanceToRadiusExactExtern(const Vec2& q, const Vec2& p,
+                                                  double r);
+KINETRI_HD inline int Orient2dExact(const Vec2& a, const Vec2& b,
+                                    const Vec2& c) {
+  return Orient2dExactExtern(a, b, c);
+}
+KINETRI_HD inline int InCircleExact(const Vec2& a, const Vec2& b, const Vec2& c,
+                                    const Vec2& d) {
+  return InCircleExactExtern(a, b, c, d);
+}
+KINETRI_HD inline int CompareDistanceExact(const Vec2& q, const Vec2& a,
+                                           const Vec2& b) {
+  return CompareDistanceExactExtern(q, a, b);
+}
+KINETRI_HD inline int CompareDistanceToRadiusExact(const Vec2& q, const Vec2& p,
+                                                   double r) {
+  return CompareDistanceToRadiusExactExtern(q, p, r);
+}
+#else
+KINETRI_HD KINETRI_COLD inline int Orient2dExact(const Vec2& a, const Vec2& b,
+                                                 const Vec2& c) {
+  return Orient2dExactBody(a, b, c);
+}
+KINETRI_HD KINETRI_COLD inline int InCircleExact(const Vec2& a, const Vec2& b,
+                                                 const Vec2& c, const Vec2& d) {
+  return InCircleExactBody(a, b, c, d);
+}
+KINETRI_HD KINETRI_COLD inline int CompareDistanceExact(const Vec2& q,
+                                                        const Vec2& a,
+                                                        const Vec2& b) {
+  return CompareDistanceExactBody(q, a, b);
+}
+KINETRI_HD KINETRI_COLD inline int CompareDistanceToRadiusExact(const Vec2& q,
+                                                                const Vec2& p,
+                                                                double r) {
+  return CompareDistanceToRadiusExactBody(q, p, r);
+}
+#endif
 }  // namespace internal
 
 KINETRI_HD inline int Orient2d(const Vec2& a, const Vec2& b, const Vec2& c) {

@@ -14,7 +14,8 @@
 //    the points in disks of growing radius (starting from the distance of
 //    the farthest neighbour of the nearest site), and once a disk holds at
 //    least k points (the query's own point excluded) it keeps the k first of
-//    them in a caller-provided sorted buffer. Every point among the k first
+//    them in a caller-provided buffer (sorted by insertion for small k, a
+//    bounded heap sorted at the end for large k). Every point among the k first
 //    is no farther than the k-th point in the disk, hence in the disk.
 //
 // Both need the neighbour rows of a query view (TriangulationView::adj).
@@ -126,6 +127,10 @@ KINETRI_HD inline uint32_t CountPointsWithin(const TriangulationView& v,
   return points;
 }
 
+// Up to this k, KNearestSearch keeps its rows sorted by insertion; above,
+// in a heap.
+inline constexpr uint32_t kKnnInsertionMax = 32;
+
 // One entry of a k-NN answer: internal point id and squared distance.
 struct KnnEntry {
   uint32_t point;
@@ -155,27 +160,61 @@ KINETRI_HD inline uint32_t KNearestSearch(const TriangulationView& v,
     r *= 2.0;
     have = CountPointsWithin(v, q, r, root, self, k);
   }
-  // Keep the k first (exact order; coincident points by external id).
+  // Keep the k first (exact order; coincident points by external id):
+  // for small k a sorted buffer with insertion, for larger k a bounded
+  // max-heap (the last kept entry on top) sorted at the end, O(m log k)
+  // instead of O(m k) for the m points of the disk (one thread per query
+  // on a GPU makes a k of thousands take seconds by insertion).
+  // Entry x comes before entry y.
+  auto less = [&](const KnnEntry& x, const KnnEntry& y) {
+    const int c =
+        CompareCloserCached(q, v.pos[x.point], x.d2, v.pos[y.point], y.d2);
+    return c < 0 || (c == 0 && v.ext_of_int[x.point] < v.ext_of_int[y.point]);
+  };
+  const bool heap = k > kKnnInsertionMax;
+  // The heap's top sinks to its place among out[0..end).
+  auto sift_down = [&](uint32_t i, uint32_t end) {
+    const KnnEntry x = out[i];
+    while (true) {
+      uint32_t c = 2 * i + 1;
+      if (c >= end) break;
+      if (c + 1 < end && less(out[c], out[c + 1])) ++c;
+      if (!less(x, out[c])) break;
+      out[i] = out[c];
+      i = c;
+    }
+    out[i] = x;
+  };
   uint32_t n = 0;
+  // Adds point p at squared distance d2; false when it does not enter the
+  // k first.
+  auto insert = [&](uint32_t p, double d2) {
+    const KnnEntry x{p, d2};
+    if (n == k && !less(x, out[heap ? 0 : k - 1])) return false;
+    if (heap) {
+      if (n == k) {
+        out[0] = x;
+        sift_down(0, k);
+        return true;
+      }
+      uint32_t j = n++;  // sift up
+      while (j > 0 && less(out[(j - 1) / 2], x)) {
+        out[j] = out[(j - 1) / 2];
+        j = (j - 1) / 2;
+      }
+      out[j] = x;
+      return true;
+    }
+    uint32_t j = n < k ? n++ : k - 1;
+    while (j > 0 && less(x, out[j - 1])) {
+      out[j] = out[j - 1];
+      --j;
+    }
+    out[j] = x;
+    return true;
+  };
   RadiusSearch(v, q, r, root, [&](uint32_t s) {
     const double d2 = SquaredDistance(q, v.pos[s]);
-    // Is point (p, ext) at distance d2 before entry a?
-    auto before = [&](uint32_t p, uint32_t ext, const KnnEntry& a) {
-      const int c = CompareCloserCached(q, v.pos[p], d2, v.pos[a.point], a.d2);
-      return c < 0 || (c == 0 && ext < v.ext_of_int[a.point]);
-    };
-    // Insertion into the sorted buffer of at most k entries; false when
-    // the point does not enter it.
-    auto insert = [&](uint32_t p, uint32_t ext) {
-      if (n == k && !before(p, ext, out[k - 1])) return false;
-      uint32_t j = n < k ? n++ : k - 1;
-      while (j > 0 && before(p, ext, out[j - 1])) {
-        out[j] = out[j - 1];
-        --j;
-      }
-      out[j] = {p, d2};
-      return true;
-    };
     if (v.dup_next[s] != kNoVertex && v.site_member_offsets != nullptr) {
       // Members by ascending external id: once one stays out, all the
       // later ones do (same distance, larger id).
@@ -183,15 +222,23 @@ KINETRI_HD inline uint32_t KNearestSearch(const TriangulationView& v,
       for (uint32_t m = v.site_member_offsets[s]; m < end; ++m) {
         const uint32_t ext = v.site_members[m];
         if (ext == self) continue;
-        if (!insert(v.int_of_ext[ext], ext)) break;
+        if (!insert(v.int_of_ext[ext], d2)) break;
       }
       return;
     }
     for (uint32_t p = s; p != kNoVertex; p = v.dup_next[p]) {
-      const uint32_t ext = v.ext_of_int[p];
-      if (ext != self) insert(p, ext);
+      if (v.ext_of_int[p] != self) insert(p, d2);
     }
   });
+  if (heap) {
+    // Heap sort: the top goes to the end of the shrinking heap.
+    for (uint32_t end = n; end > 1; --end) {
+      const KnnEntry top = out[0];
+      out[0] = out[end - 1];
+      out[end - 1] = top;
+      sift_down(0, end - 1);
+    }
+  }
   return n;
 }
 

@@ -60,7 +60,7 @@ void CheckAllQueries(const std::vector<Vec2>& pts, uint64_t seed) {
   const auto qs = QueryPoints(pts, 300, seed);
   std::vector<uint32_t> ids(std::min<uint32_t>(n, 300));
   std::iota(ids.begin(), ids.end(), 0);
-  for (int k : {1, 4, 17, int(n) + 3}) {
+  for (int k : {1, 4, 17, 40, int(n) + 3}) {
     auto r = KNearest(*t, qs, k);
     ASSERT_TRUE(r.ok());
     for (size_t i = 0; i < qs.size(); ++i) {

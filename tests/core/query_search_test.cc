@@ -70,7 +70,7 @@ void CheckSearches(const std::vector<Vec2>& pts, uint64_t seed) {
       ASSERT_EQ(RadiusIds(v, qs[i], r, root, kNoVertex), want)
           << "radius " << r << " query " << i;
     }
-    for (uint32_t k : {1u, 4u, 17u, n + 3}) {
+    for (uint32_t k : {1u, 4u, 17u, 40u, n + 3}) {
       std::vector<uint32_t> want(rank.begin(),
                                  rank.begin() + std::min<size_t>(k, n));
       ASSERT_EQ(KnnIds(v, qs[i], k, root, kNoVertex), want)
