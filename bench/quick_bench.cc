@@ -39,6 +39,13 @@ ABSL_FLAG(std::string, executor, "regions",
           "(global rounds with atomic claims)");
 ABSL_FLAG(uint32_t, region_triangles, 0,
           "triangles per region of the region executor (0 = its default)");
+ABSL_FLAG(double, filter_estimate, -1,
+          "region executor: certify vertex tolerances when a sample predicts "
+          "at most this fraction of loud vertices (-1: the default; "
+          "RegionStepPolicy::filter_estimate)");
+ABSL_FLAG(double, filter_fraction, -1,
+          "region executor: keep the tolerances while at most this fraction "
+          "of the vertices is loud (-1: the default)");
 ABSL_FLAG(int, max_subdivision_depth, -1,
           "round executor: override RoundStepPolicy::max_subdivision_depth "
           "(-1: default)");
@@ -126,6 +133,12 @@ int main(int argc, char** argv) {
   }
   if (absl::GetFlag(FLAGS_region_triangles) > 0) {
     opt.region.region_triangles = absl::GetFlag(FLAGS_region_triangles);
+  }
+  if (absl::GetFlag(FLAGS_filter_estimate) >= 0) {
+    opt.region.filter_estimate = absl::GetFlag(FLAGS_filter_estimate);
+  }
+  if (absl::GetFlag(FLAGS_filter_fraction) >= 0) {
+    opt.region.filter_fraction = absl::GetFlag(FLAGS_filter_fraction);
   }
   if (absl::GetFlag(FLAGS_max_subdivision_depth) >= 0) {
     opt.round.max_subdivision_depth =
