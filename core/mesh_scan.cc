@@ -70,7 +70,29 @@ KINETRI_VECTOR_CLONES void ScanTriangles(const MeshView& m, const Vec2* pos,
                                          uint32_t lo, uint32_t hi,
                                          std::vector<uint32_t>* invalid,
                                          std::vector<uint32_t>* illegal) {
+  // The loads that miss the cache are the apexes across the edges
+  // (origin[Prev(twin[e])], in a neighbour that may lie far away in slot
+  // order) and their positions: both are prefetched ahead, the apex ids
+  // kFar triangles ahead, their positions kNear ahead (once the ids are
+  // in cache).
+  constexpr uint32_t kFar = 16, kNear = 8;
+  auto prefetch_apexes = [&](uint32_t u) {
+    for (uint32_t k = 0; k < 3; ++k) {
+      const uint32_t f = m.twin[3 * u + k];
+      if (f < m.num_half_edges) __builtin_prefetch(&m.origin[Prev(f)]);
+    }
+  };
+  auto prefetch_apex_positions = [&](uint32_t u) {
+    for (uint32_t k = 0; k < 3; ++k) {
+      const uint32_t f = m.twin[3 * u + k];
+      if (f >= m.num_half_edges) continue;
+      const uint32_t d = m.origin[Prev(f)];
+      if (d < kInfiniteVertex) __builtin_prefetch(&pos[d]);
+    }
+  };
   for (uint32_t t = lo; t < hi; ++t) {
+    if (t + kFar < hi) prefetch_apexes(t + kFar);
+    if (t + kNear < hi) prefetch_apex_positions(t + kNear);
     const uint32_t v[3] = {m.origin[3 * t], m.origin[3 * t + 1],
                            m.origin[3 * t + 2]};
     if (v[0] == kNoVertex) continue;  // free slot
