@@ -10,13 +10,16 @@
 //    first without a stack: after finishing a site it goes back to its
 //    parent and resumes the parent's row after it. Each site in the disk is
 //    reported exactly once; memory is O(1) per query.
-//  * KNearestSearch finds the k first points of the exact order: it counts
-//    the points in disks of growing radius (starting from the distance of
-//    the farthest neighbour of the nearest site), and once a disk holds at
-//    least k points (the query's own point excluded) it keeps the k first of
-//    them in a caller-provided buffer (sorted by insertion for small k, a
-//    bounded heap sorted at the end for large k). Every point among the k first
-//    is no farther than the k-th point in the disk, hence in the disk.
+//  * KNearestSearch finds the k first points of the exact order. For small
+//    k it takes the sites best first from the nearest one, discovering
+//    each from its parent (the same tree), with a candidate list of at
+//    most k + 1 sites on the thread's stack. For large k it counts the
+//    points in disks of growing radius (starting from the distance of the
+//    farthest neighbour of the nearest site), and once a disk holds at
+//    least k points (the query's own point excluded) it keeps the k first
+//    of them in a bounded heap in the caller's buffer, sorted at the end. Every
+//    point among the k first is no farther than the k-th point in the disk,
+//    hence in the disk.
 //
 // Both need the neighbour rows of a query view (TriangulationView::adj).
 #ifndef KINETRI_CORE_QUERY_SEARCH_H_
@@ -127,15 +130,109 @@ KINETRI_HD inline uint32_t CountPointsWithin(const TriangulationView& v,
   return points;
 }
 
-// Up to this k, KNearestSearch keeps its rows sorted by insertion; above,
-// in a heap.
-inline constexpr uint32_t kKnnInsertionMax = 32;
+// Up to this k, KNearestSearch searches best first (KNearestBestFirst);
+// above, it counts disks of growing radius and keeps the rows in a heap.
+inline constexpr uint32_t kKnnBestFirstMax = 32;
 
 // One entry of a k-NN answer: internal point id and squared distance.
 struct KnnEntry {
   uint32_t point;
   double d2;
 };
+
+// Appends the points of site s (at squared distance d2 from the query),
+// `self` excluded, by ascending external id to out[n..k); returns the new
+// count. Where they do not all fit, the smallest ids are kept.
+KINETRI_HD inline uint32_t AppendSitePoints(const TriangulationView& v,
+                                            uint32_t s, double d2,
+                                            uint32_t self, KnnEntry* out,
+                                            uint32_t n, uint32_t k) {
+  if (v.dup_next[s] == kNoVertex) {
+    if (v.ext_of_int[s] != self && n < k) out[n++] = {s, d2};
+    return n;
+  }
+  if (v.site_member_offsets != nullptr) {  // members by ascending id
+    const uint32_t end = v.site_member_offsets[s + 1];
+    for (uint32_t m = v.site_member_offsets[s]; m < end && n < k; ++m) {
+      const uint32_t ext = v.site_members[m];
+      if (ext != self) out[n++] = {v.int_of_ext[ext], d2};
+    }
+    return n;
+  }
+  // The chain in any order: a bounded insertion by id into out[n0..k).
+  const uint32_t n0 = n;
+  for (uint32_t p = s; p != kNoVertex; p = v.dup_next[p]) {
+    const uint32_t ext = v.ext_of_int[p];
+    if (ext == self) continue;
+    uint32_t j;
+    if (n < k) {
+      j = n++;
+    } else if (n > n0 && ext < v.ext_of_int[out[n - 1].point]) {
+      j = n - 1;
+    } else {
+      continue;
+    }
+    while (j > n0 && ext < v.ext_of_int[out[j - 1].point]) {
+      out[j] = out[j - 1];
+      --j;
+    }
+    out[j] = {p, d2};
+  }
+  return n;
+}
+
+// KNearestSearch for k <= kKnnBestFirstMax: the sites in the exact order
+// from the nearest one (root), each taking the next points of the row,
+// as the host executors search with visit marks; here without marks: a
+// site is discovered only from its parent (its neighbour that comes first
+// from q, popped before it), so each one once. The candidates are the
+// best k - (points so far) + 1 sites discovered and not yet taken, enough
+// since each site holds at least one point.
+KINETRI_HD inline uint32_t KNearestBestFirst(const TriangulationView& v,
+                                             const Vec2& q, uint32_t k,
+                                             uint32_t root, uint32_t self,
+                                             KnnEntry* out) {
+  struct Candidate {
+    double d2;
+    uint32_t site;
+  };
+  // Live candidates cand[head..size), closest first; at most
+  // kKnnBestFirstMax + 2 of them at once (the cap, and one being added).
+  constexpr uint32_t kSlots = 2 * (kKnnBestFirstMax + 2);
+  Candidate cand[kSlots];
+  auto before = [&](const Candidate& a, const Candidate& b) {
+    return CompareCloserCached(q, v.pos[a.site], a.d2, v.pos[b.site], b.d2) < 0;
+  };
+  uint32_t head = 0, size = 0, n = 0;
+  cand[size++] = {SquaredDistance(q, v.pos[root]), root};
+  while (head < size && n < k) {
+    const Candidate c = cand[head++];
+    n = AppendSitePoints(v, c.site, c.d2, self, out, n, k);
+    if (n >= k) break;
+    const uint32_t cap = k - n + 1;
+    for (const uint32_t* it = v.RowBegin(c.site); it != v.RowEnd(c.site);
+         ++it) {
+      const uint32_t w = *it;
+      if (w == root) continue;
+      const Candidate e{SquaredDistance(q, v.pos[w]), w};
+      if (size - head >= cap && !before(e, cand[size - 1])) continue;
+      if (FirstNeighbor(v, q, w, /*include_self=*/false) != c.site) continue;
+      if (size == kSlots) {  // the live ones to the front
+        for (uint32_t i = head; i < size; ++i) cand[i - head] = cand[i];
+        size -= head;
+        head = 0;
+      }
+      uint32_t j = size++;
+      while (j > head && before(e, cand[j - 1])) {
+        cand[j] = cand[j - 1];
+        --j;
+      }
+      cand[j] = e;
+      if (size - head > cap) --size;
+    }
+  }
+  return n;
+}
 
 // The k first points from q (self excluded) into out[0..k), closest first;
 // returns how many were found (< k only when the set is smaller).
@@ -144,6 +241,7 @@ KINETRI_HD inline uint32_t KNearestSearch(const TriangulationView& v,
                                           uint32_t root, uint32_t self,
                                           KnnEntry* out) {
   if (k == 0) return 0;
+  if (k <= kKnnBestFirstMax) return KNearestBestFirst(v, q, k, root, self, out);
   // Starting radius: the farthest neighbour of the nearest site.
   double r2 = 0.0;
   for (const uint32_t* it = v.RowBegin(root); it != v.RowEnd(root); ++it) {
@@ -160,19 +258,17 @@ KINETRI_HD inline uint32_t KNearestSearch(const TriangulationView& v,
     r *= 2.0;
     have = CountPointsWithin(v, q, r, root, self, k);
   }
-  // Keep the k first (exact order; coincident points by external id):
-  // for small k a sorted buffer with insertion, for larger k a bounded
-  // max-heap (the last kept entry on top) sorted at the end, O(m log k)
-  // instead of O(m k) for the m points of the disk (one thread per query
-  // on a GPU makes a k of thousands take seconds by insertion).
-  // Entry x comes before entry y.
+  // Keep the k first (exact order; coincident points by external id) in a
+  // bounded max-heap (the last kept entry on top), sorted at the end:
+  // O(m log k) for the m points of the disk (one thread per query on a GPU
+  // made a k of thousands take seconds by insertion). Entry x comes before
+  // entry y.
   auto less = [&](const KnnEntry& x, const KnnEntry& y) {
     const int c =
         CompareCloserCached(q, v.pos[x.point], x.d2, v.pos[y.point], y.d2);
     return c < 0 || (c == 0 && v.ext_of_int[x.point] < v.ext_of_int[y.point]);
   };
-  const bool heap = k > kKnnInsertionMax;
-  // The heap's top sinks to its place among out[0..end).
+  // The entry at i sinks to its place among out[0..end).
   auto sift_down = [&](uint32_t i, uint32_t end) {
     const KnnEntry x = out[i];
     while (true) {
@@ -190,25 +286,16 @@ KINETRI_HD inline uint32_t KNearestSearch(const TriangulationView& v,
   // k first.
   auto insert = [&](uint32_t p, double d2) {
     const KnnEntry x{p, d2};
-    if (n == k && !less(x, out[heap ? 0 : k - 1])) return false;
-    if (heap) {
-      if (n == k) {
-        out[0] = x;
-        sift_down(0, k);
-        return true;
-      }
-      uint32_t j = n++;  // sift up
-      while (j > 0 && less(out[(j - 1) / 2], x)) {
-        out[j] = out[(j - 1) / 2];
-        j = (j - 1) / 2;
-      }
-      out[j] = x;
+    if (n == k) {
+      if (!less(x, out[0])) return false;
+      out[0] = x;
+      sift_down(0, k);
       return true;
     }
-    uint32_t j = n < k ? n++ : k - 1;
-    while (j > 0 && less(x, out[j - 1])) {
-      out[j] = out[j - 1];
-      --j;
+    uint32_t j = n++;  // sift up
+    while (j > 0 && less(out[(j - 1) / 2], x)) {
+      out[j] = out[(j - 1) / 2];
+      j = (j - 1) / 2;
     }
     out[j] = x;
     return true;
@@ -230,14 +317,12 @@ KINETRI_HD inline uint32_t KNearestSearch(const TriangulationView& v,
       if (v.ext_of_int[p] != self) insert(p, d2);
     }
   });
-  if (heap) {
-    // Heap sort: the top goes to the end of the shrinking heap.
-    for (uint32_t end = n; end > 1; --end) {
-      const KnnEntry top = out[0];
-      out[0] = out[end - 1];
-      out[end - 1] = top;
-      sift_down(0, end - 1);
-    }
+  // Heap sort: the top goes to the end of the shrinking heap.
+  for (uint32_t end = n; end > 1; --end) {
+    const KnnEntry top = out[0];
+    out[0] = out[end - 1];
+    out[end - 1] = top;
+    sift_down(0, end - 1);
   }
   return n;
 }

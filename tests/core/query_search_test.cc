@@ -52,6 +52,11 @@ void CheckSearches(const std::vector<Vec2>& pts, uint64_t seed) {
   const uint32_t n = pts.size();
   if (n == 0) return;
   const TriangulationView v = t->query_view();
+  // The same view without the member rows of coincident points: the
+  // searches then walk each site's chain (its own code path).
+  TriangulationView chains = v;
+  chains.site_member_offsets = nullptr;
+  chains.site_members = nullptr;
   double typical = 0.0;
   for (size_t i = 1; i < std::min<size_t>(n, 50); ++i) {
     typical =
@@ -70,11 +75,13 @@ void CheckSearches(const std::vector<Vec2>& pts, uint64_t seed) {
       ASSERT_EQ(RadiusIds(v, qs[i], r, root, kNoVertex), want)
           << "radius " << r << " query " << i;
     }
-    for (uint32_t k : {1u, 4u, 17u, 40u, n + 3}) {
+    for (uint32_t k : {1u, 4u, 17u, 32u, 40u, n + 3}) {
       std::vector<uint32_t> want(rank.begin(),
                                  rank.begin() + std::min<size_t>(k, n));
       ASSERT_EQ(KnnIds(v, qs[i], k, root, kNoVertex), want)
           << "k=" << k << " query " << i;
+      ASSERT_EQ(KnnIds(chains, qs[i], k, root, kNoVertex), want)
+          << "k=" << k << " query " << i << " (chains)";
     }
   }
   // Queries around the points themselves, excluding them.
@@ -87,6 +94,8 @@ void CheckSearches(const std::vector<Vec2>& pts, uint64_t seed) {
           rank.begin(), rank.begin() + std::min<size_t>(k, rank.size()));
       ASSERT_EQ(KnnIds(v, pts[id], k, root, id), want)
           << "k=" << k << " point " << id;
+      ASSERT_EQ(KnnIds(chains, pts[id], k, root, id), want)
+          << "k=" << k << " point " << id << " (chains)";
     }
     std::vector<uint32_t> want;
     for (uint32_t j : rank) {
