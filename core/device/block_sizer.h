@@ -15,11 +15,19 @@
 // time, where the fixed cost alone is over that); and it halves only when it
 // took over twice the quickest block's time too (halving cannot shorten a block
 // that is all fixed cost). Host code only, so it is tested without a GPU.
+//
+// Not settled on a GPU (docs/DEVICE.md): Thrust's for_each runs 256 threads
+// of 2 elements per CUDA block, so every block of up to 512 queries runs on
+// one multiprocessor, and past 256 a thread takes two queries one after the
+// other: a block of 328 takes twice one of 164 there, and the rule above
+// stops growing. KINETRI_DEVICE_QUERY_BLOCK=N (read once per process) makes
+// the device's first block N queries, to try that on a GPU.
 #ifndef KINETRI_CORE_DEVICE_BLOCK_SIZER_H_
 #define KINETRI_CORE_DEVICE_BLOCK_SIZER_H_
 
 #include <algorithm>
 #include <cstddef>
+#include <cstdlib>
 
 namespace kinetri::core::device {
 
@@ -29,11 +37,24 @@ class BlockSizer {
   static constexpr double kTargetSeconds = 0.008;
   static constexpr double kLimitSeconds = 0.025;
 
-  // Blocks of at most max_block queries; fixed_cost_aware on a GPU.
-  BlockSizer(size_t max_block, bool fixed_cost_aware)
+  // Blocks of at most max_block queries; fixed_cost_aware on a GPU, whose
+  // first block is first_block queries (0: kFirstBlock).
+  BlockSizer(size_t max_block, bool fixed_cost_aware, size_t first_block = 0)
       : max_(std::max<size_t>(1, max_block)),
         fixed_cost_aware_(fixed_cost_aware),
-        block_(std::min(kFirstBlock, max_)) {}
+        block_(std::min(
+            fixed_cost_aware && first_block > 0 ? first_block : kFirstBlock,
+            max_)) {}
+
+  // KINETRI_DEVICE_QUERY_BLOCK, or 0 where it is unset or not a number.
+  static size_t FirstBlockFromEnvironment() {
+    static const size_t first = [] {
+      const char* v = std::getenv("KINETRI_DEVICE_QUERY_BLOCK");
+      return v == nullptr ? size_t{0}
+                          : static_cast<size_t>(std::strtoull(v, nullptr, 10));
+    }();
+    return first;
+  }
 
   // The size of the next block.
   size_t size() const { return block_; }

@@ -484,7 +484,8 @@ class QueryEngine {
             : SIZE_MAX;
     const size_t max_block = std::min(
         max_block_memory, large_blocks ? kMaxBlockLarge : kMaxBlockSmall);
-    BlockSizer blocks(max_block, /*fixed_cost_aware=*/large_blocks);
+    BlockSizer blocks(max_block, /*fixed_cost_aware=*/large_blocks,
+                      BlockSizer::FirstBlockFromEnvironment());
     uint64_t total = 0;
     uint64_t granted = 0;  // by q.limits.admit
     if (knn && view_.num_points > q.k) {

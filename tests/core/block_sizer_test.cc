@@ -76,6 +76,19 @@ TEST(BlockSizer, GpuBlocksOfHeavyQueriesStayShort) {
   EXPECT_EQ(sizer.size(), grown / 2);
 }
 
+TEST(BlockSizer, AGivenFirstBlockOnAGpu) {
+  // The first block a GPU run asks for (KINETRI_DEVICE_QUERY_BLOCK); the
+  // CPU rule ignores it, and the largest block still caps it.
+  EXPECT_EQ(BlockSizer(1 << 20, true, 16384).size(), 16384u);
+  EXPECT_EQ(BlockSizer(1 << 20, false, 16384).size(), BlockSizer::kFirstBlock);
+  EXPECT_EQ(BlockSizer(1000, true, 16384).size(), 1000u);
+  EXPECT_EQ(BlockSizer(1 << 20, true, 0).size(), BlockSizer::kFirstBlock);
+  // From there the fixed-cost rule goes on: a block all fixed cost grows.
+  BlockSizer sizer(1 << 20, true, 16384);
+  sizer.Done(16384, 2e-3);
+  EXPECT_EQ(sizer.size(), 32768u);
+}
+
 TEST(BlockSizer, NeverBeyondTheLargestBlock) {
   Blocks run = Simulate(1000000, 5000, true, 1e-3, 0.0);
   for (size_t n : run.sizes) EXPECT_LE(n, 5000u);
