@@ -7,9 +7,11 @@
 //    strictly closer than w (greedy property, queries.h) and so lies in the
 //    disk whenever w does. The parent links form a tree over the sites in
 //    the disk rooted at the nearest site; the search walks that tree depth
-//    first without a stack: after finishing a site it goes back to its
-//    parent and resumes the parent's row after it. Each site in the disk is
-//    reported exactly once; memory is O(1) per query.
+//    first: after finishing a site it goes back to its parent and resumes
+//    the parent's row after it, from a path of the last 16 steps down kept
+//    on the thread's stack, or below that found again as the neighbour
+//    that comes first. Each site in the disk is reported exactly once;
+//    memory is O(1) per query.
 //  * KNearestSearch finds the k first points of the exact order. For small
 //    k it takes the sites best first from the nearest one, discovering
 //    each from its parent (the same tree), with a candidate list of at
@@ -69,6 +71,13 @@ KINETRI_HD uint32_t RadiusSearch(const TriangulationView& v, const Vec2& q,
   if (!EmitAndGoOn(emit, root)) return count;
   uint32_t u = root;
   const uint32_t* it = v.RowBegin(u);
+  // The last kPath steps down the tree (parent, where its row resumes), so
+  // going back up needs no search; deeper paths forget their oldest steps,
+  // which are found again from the geometry.
+  constexpr uint32_t kPath = 16;
+  uint32_t path_site[kPath];
+  const uint32_t* path_row[kPath];
+  uint32_t top = 0, held = 0;
   while (true) {
     bool descended = false;
     const double du = SquaredDistance(q, v.pos[u]);
@@ -82,6 +91,10 @@ KINETRI_HD uint32_t RadiusSearch(const TriangulationView& v, const Vec2& q,
       if (FirstNeighbor(v, q, w, /*include_self=*/false) != u) continue;
       ++count;
       if (!EmitAndGoOn(emit, w)) return count;
+      path_site[top] = u;
+      path_row[top] = it + 1;
+      top = (top + 1) % kPath;
+      if (held < kPath) ++held;
       u = w;
       it = v.RowBegin(u);
       descended = true;
@@ -89,6 +102,13 @@ KINETRI_HD uint32_t RadiusSearch(const TriangulationView& v, const Vec2& q,
     }
     if (descended) continue;
     if (u == root) return count;
+    if (held > 0) {  // back to the parent, from the path
+      top = (top + kPath - 1) % kPath;
+      --held;
+      u = path_site[top];
+      it = path_row[top];
+      continue;
+    }
     // Back to the parent, just after u in its row.
     const uint32_t p = FirstNeighbor(v, q, u, false);
     it = v.RowBegin(p);
