@@ -28,12 +28,11 @@ uint64_t GpuFreeBytes() {
 
 std::unique_ptr<DeviceExecutor> MakeCudaExecutor() {
   // The exact predicates keep their expansions in per-thread local memory
-  // (EdgeIllegal's kernel has the largest frame, about 45 KiB). The limit
-  // is left to the driver by default (it used to be 96 KiB here); whether
-  // the driver sizes the stack for every kernel is in doubt: on an H200 the
-  // query kernels read outside the thread's stack under the default limit
-  // (docs/DEVICE.md), which the next GPU run checks with
-  // KINETRI_CUDA_STACK_BYTES, read once per process here.
+  // (the exact in-circle's frame is about 45 KiB). The driver raises the
+  // per-thread stack to what a launch needs (seen on an H200: 1,024 ->
+  // 45,504 bytes at the first such launch; docs/DEVICE.md), so the limit is
+  // left alone by default. KINETRI_CUDA_STACK_BYTES sets it once per
+  // process, to measure what a fixed limit changes.
   static const cudaError_t stack_limit = [] {
     size_t bytes = 0;
     if (const char* env = std::getenv("KINETRI_CUDA_STACK_BYTES")) {
