@@ -779,8 +779,8 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       touched_, seeds_, known_;
   thr::device_vector<uint8_t> flags_;
   thr::device_vector<rules::FixProposal> props_;
-  ScratchPool pool_;    // Thrust's temporaries, kept across rounds and steps
-  uint64_t calls_ = 0;  // device algorithms launched (P() calls)
+  ScratchPool pool_;     // Thrust's temporaries, kept across rounds and steps
+  uint64_t calls_ = 0;   // device algorithms launched (P() calls)
   CallSiteClock clock_;  // where the attempts' time goes, by call site
   // Over the executor's life (KINETRI_DEVICE_PROFILE prints them).
   struct Totals {
