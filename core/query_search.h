@@ -118,6 +118,69 @@ KINETRI_HD uint32_t RadiusSearch(const TriangulationView& v, const Vec2& q,
   }
 }
 
+// RadiusSearch for disks of at most kSmallDiskSites sites: breadth first
+// from the nearest site (the sites in a disk around q holding the nearest
+// site are connected through sites in the disk: each has a neighbour closer
+// to q), with the sites seen, in the disk or on its rim, in a small hash
+// table on the thread's stack, so each site costs one scan of its row and
+// no parent tests (RadiusSearch tests each neighbour's parent: a scan of
+// the neighbour's row). The sites are emitted only once the disk is known
+// to fit: false (nothing emitted) when it does not, and the caller goes on
+// with RadiusSearch. *count: the sites emitted.
+inline constexpr uint32_t kSmallDiskSites = 48;
+template <typename Emit>
+KINETRI_HD bool SmallDiskSearch(const TriangulationView& v, const Vec2& q,
+                                double r, uint32_t root, Emit&& emit,
+                                uint32_t* count) {
+  *count = 0;
+  if (!InDisk(v, q, r, root)) return true;
+  constexpr uint32_t kTable = 128;  // at most 3/4 full
+  uint32_t seen[kTable];
+  for (uint32_t i = 0; i < kTable; ++i) seen[i] = kNoVertex;
+  uint32_t seen_count = 0;
+  // Whether w was not seen before (and is now); false also when the table
+  // is full (the caller then stops).
+  auto first_sight = [&](uint32_t w) {
+    uint32_t h = (w * 2654435761u) >> 25;  // 7 bits: kTable
+    while (seen[h] != kNoVertex) {
+      if (seen[h] == w) return false;
+      h = (h + 1) & (kTable - 1);
+    }
+    seen[h] = w;
+    ++seen_count;
+    return true;
+  };
+  uint32_t sites[kSmallDiskSites];
+  uint32_t n = 0;
+  first_sight(root);
+  sites[n++] = root;
+  for (uint32_t head = 0; head < n; ++head) {
+    const uint32_t u = sites[head];
+    for (const uint32_t* it = v.RowBegin(u); it != v.RowEnd(u); ++it) {
+      if (seen_count >= kTable * 3 / 4) return false;
+      const uint32_t w = *it;
+      if (!first_sight(w) || !InDisk(v, q, r, w)) continue;
+      if (n == kSmallDiskSites) return false;
+      sites[n++] = w;
+    }
+  }
+  for (uint32_t i = 0; i < n; ++i) {
+    ++*count;
+    if (!EmitAndGoOn(emit, sites[i])) break;
+  }
+  return true;
+}
+
+// Every site within r of q, as RadiusSearch, by SmallDiskSearch where the
+// disk is small. Returns the number of sites emitted.
+template <typename Emit>
+KINETRI_HD uint32_t DiskSearch(const TriangulationView& v, const Vec2& q,
+                               double r, uint32_t root, Emit&& emit) {
+  uint32_t count;
+  if (SmallDiskSearch(v, q, r, root, emit, &count)) return count;
+  return RadiusSearch(v, q, r, root, emit);
+}
+
 // Number of points of site s other than `self` (an external id, or
 // kNoVertex): O(1) with the view's site member rows.
 KINETRI_HD inline uint32_t PointsOfSite(const TriangulationView& v, uint32_t s,
@@ -159,6 +222,65 @@ struct KnnEntry {
   uint32_t point;
   double d2;
 };
+
+// Entry x comes before entry y: the exact order from q, coincident points
+// by external id.
+struct EntryOrder {
+  const TriangulationView& v;
+  Vec2 q;
+  KINETRI_HD bool operator()(const KnnEntry& x, const KnnEntry& y) const {
+    const int c =
+        CompareCloserCached(q, v.pos[x.point], x.d2, v.pos[y.point], y.d2);
+    return c < 0 || (c == 0 && v.ext_of_int[x.point] < v.ext_of_int[y.point]);
+  }
+};
+
+// The entry at i sinks to its place in the max-heap a[0..end) (by less).
+template <typename Less>
+KINETRI_HD void SiftDown(KnnEntry* a, uint32_t i, uint32_t end,
+                         const Less& less) {
+  const KnnEntry x = a[i];
+  while (true) {
+    uint32_t c = 2 * i + 1;
+    if (c >= end) break;
+    if (c + 1 < end && less(a[c], a[c + 1])) ++c;
+    if (!less(x, a[c])) break;
+    a[i] = a[c];
+    i = c;
+  }
+  a[i] = x;
+}
+
+// The max-heap a[0..n) into ascending order (each top to the end of the
+// shrinking heap).
+template <typename Less>
+KINETRI_HD void SortHeap(KnnEntry* a, uint32_t n, const Less& less) {
+  for (uint32_t end = n; end > 1; --end) {
+    const KnnEntry top = a[0];
+    a[0] = a[end - 1];
+    a[end - 1] = top;
+    SiftDown(a, 0, end - 1, less);
+  }
+}
+
+// Sorts row[0..n) closest first (EntryOrder) in place, without memory: by
+// insertion for short rows, by heap sort (O(n log n)) above, so one
+// thread sorts a row of thousands too.
+KINETRI_HD inline void SortRow(const TriangulationView& v, const Vec2& q,
+                               KnnEntry* row, uint32_t n) {
+  const EntryOrder less{v, q};
+  if (n <= 48) {
+    for (uint32_t i = 1; i < n; ++i) {
+      const KnnEntry x = row[i];
+      uint32_t j = i;
+      for (; j > 0 && less(x, row[j - 1]); --j) row[j] = row[j - 1];
+      row[j] = x;
+    }
+    return;
+  }
+  for (uint32_t i = n / 2; i-- > 0;) SiftDown(row, i, n, less);
+  SortHeap(row, n, less);
+}
 
 // Appends the points of site s (at squared distance d2 from the query),
 // `self` excluded, by ascending external id to out[n..k); returns the new
@@ -281,26 +403,8 @@ KINETRI_HD inline uint32_t KNearestSearch(const TriangulationView& v,
   // Keep the k first (exact order; coincident points by external id) in a
   // bounded max-heap (the last kept entry on top), sorted at the end:
   // O(m log k) for the m points of the disk (one thread per query on a GPU
-  // made a k of thousands take seconds by insertion). Entry x comes before
-  // entry y.
-  auto less = [&](const KnnEntry& x, const KnnEntry& y) {
-    const int c =
-        CompareCloserCached(q, v.pos[x.point], x.d2, v.pos[y.point], y.d2);
-    return c < 0 || (c == 0 && v.ext_of_int[x.point] < v.ext_of_int[y.point]);
-  };
-  // The entry at i sinks to its place among out[0..end).
-  auto sift_down = [&](uint32_t i, uint32_t end) {
-    const KnnEntry x = out[i];
-    while (true) {
-      uint32_t c = 2 * i + 1;
-      if (c >= end) break;
-      if (c + 1 < end && less(out[c], out[c + 1])) ++c;
-      if (!less(x, out[c])) break;
-      out[i] = out[c];
-      i = c;
-    }
-    out[i] = x;
-  };
+  // made a k of thousands take seconds by insertion).
+  const EntryOrder less{v, q};
   uint32_t n = 0;
   // Adds point p at squared distance d2; false when it does not enter the
   // k first.
@@ -309,7 +413,7 @@ KINETRI_HD inline uint32_t KNearestSearch(const TriangulationView& v,
     if (n == k) {
       if (!less(x, out[0])) return false;
       out[0] = x;
-      sift_down(0, k);
+      SiftDown(out, 0, k, less);
       return true;
     }
     uint32_t j = n++;  // sift up
@@ -337,13 +441,7 @@ KINETRI_HD inline uint32_t KNearestSearch(const TriangulationView& v,
       if (v.ext_of_int[p] != self) insert(p, d2);
     }
   });
-  // Heap sort: the top goes to the end of the shrinking heap.
-  for (uint32_t end = n; end > 1; --end) {
-    const KnnEntry top = out[0];
-    out[0] = out[end - 1];
-    out[end - 1] = top;
-    sift_down(0, end - 1);
-  }
+  SortHeap(out, n, less);
   return n;
 }
 

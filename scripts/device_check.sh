@@ -17,8 +17,10 @@
 #   scripts/device_check.sh build-cuda OUT_DIR [BENCH_SIZES]
 # Every stage has its own time limit (seconds: TEST_S for the suites, BENCH_S
 # for each benchmark size, SAN_S for each sanitizer run); STAGES picks the
-# stages (default "0 1 2 3") and BENCH_STEPS the benchmark's steps (3); the
-# logs and gtest XML go to OUT_DIR and a short table is printed last.
+# stages (default "0 1 2 3"; 4 is Nsight Compute over the query kernels),
+# SUITES the typed suites of stage 1, BENCH_STEPS the benchmark's steps (3),
+# BENCH_ENGINES and BENCH_WORKLOADS its engines and workloads; the logs and
+# gtest XML go to OUT_DIR and a short table is printed last.
 set -uo pipefail
 
 if [[ ${1:-} == --collect-libs ]]; then
@@ -45,7 +47,8 @@ TEST_S=${TEST_S:-150}
 BENCH_S=${BENCH_S:-180}
 SAN_S=${SAN_S:-60}
 # STAGES picks which of the stages below run (0: what one call costs;
-# 1: the typed suites; 2: the benchmark; 3: compute-sanitizer).
+# 1: the typed suites; 2: the benchmark; 3: compute-sanitizer; 4: the
+# query kernels under Nsight Compute).
 STAGES=${STAGES:-0 1 2 3}
 want() { [[ " $STAGES " == *" $1 "* ]]; }
 # Logs are written to $O and packed into OUT_DIR/logs.tgz after every stage
@@ -114,7 +117,7 @@ if want 1; then
 # 1. The typed suites on the CUDA backend, one after the other (processes
 #    sharing a GPU are time-sliced, which would blur the timings), each
 #    with the executor's profile at its end.
-for s in device_predicates kinetic queries join_leave randomized; do
+for s in ${SUITES:-device_predicates kinetic queries join_leave randomized}; do
   KINETRI_DEVICE_PROFILE=2 timeout "$TEST_S" "$B/tests/${s}_cuda_test" \
     --gtest_output="xml:$O/${s}.xml" > "$O/${s}.log" 2>&1
   rc=$?
@@ -135,8 +138,8 @@ if want 2; then
 for n in ${SIZES//,/ }; do
   KINETRI_DEVICE_PROFILE=2 timeout "$BENCH_S" stdbuf -oL \
     "$B/bench/kinetri-bench" --sizes="$n" \
-    --steps="${BENCH_STEPS:-3}" --workloads=brownian,paper \
-    --engines=kinetri,kinetri-device,grid,grid-device \
+    --steps="${BENCH_STEPS:-3}" --workloads="${BENCH_WORKLOADS:-brownian,paper}" \
+    --engines="${BENCH_ENGINES:-kinetri,kinetri-device,grid,grid-device}" \
     --query_points=100000 --json="$O/bench-$n.json" > "$O/bench-$n.log" 2>&1
   note "kinetri-bench n=$n rc=$?"
   grep -E 'kinetri-device|grid-device|\] ' "$O/bench-$n.log" | tail -40
@@ -165,6 +168,21 @@ elif command -v compute-sanitizer > /dev/null; then
   note "racecheck kinetic rc=$? $(grep -E 'ERROR SUMMARY|RACECHECK SUMMARY' "$O/racecheck.log" | tail -1)"
 else
   note "compute-sanitizer: not on PATH"
+fi
+
+# 4. The query kernels of one 100K-point benchmark step under Nsight
+#    Compute: duration, occupancy, registers and local memory per thread.
+if want 4 && command -v ncu > /dev/null; then
+  timeout "${NCU_S:-90}" ncu --clock-control none --kernel-name-base demangled \
+    --kernel-name regex:'KnnRows|RadiusCounts|RadiusFill|PreparePositions' \
+    --launch-count "${NCU_LAUNCHES:-8}" --section SpeedOfLight \
+    --section LaunchStats --section Occupancy --section WarpStateStats \
+    "$B/bench/kinetri-bench" --sizes=100000 --steps=1 \
+    --workloads=brownian --engines=kinetri-device --query_points=100000 \
+    > "$O/ncu_queries.txt" 2>&1
+  note "ncu query kernels rc=$?"
+  grep -E '^  [A-Za-z].*\(|Duration|Registers Per|Local Memory|Achieved Occ|Theoretical Occ|Block Size|Grid Size|Stall|Memory Throughput|Compute \(SM\) Th' \
+    "$O/ncu_queries.txt" | head -80
 fi
 
 echo

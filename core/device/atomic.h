@@ -1,5 +1,5 @@
-// The atomics the device executor needs (claims, last-writer marks),
-// relaxed, callable from host and device code. libcu++'s
+// The atomics the device executor needs (claims, last-writer marks, the
+// queries' stop word), relaxed, callable from host and device code. libcu++'s
 // cuda::atomic_ref where it exists (the CUDA toolkit's CCCL, also used by
 // the emulated backend on CPU threads); GCC's builtins on hosts without it.
 #ifndef KINETRI_CORE_DEVICE_ATOMIC_H_
@@ -50,6 +50,27 @@ KINETRI_HD inline void StoreRelaxed(uint32_t* slot, uint32_t value) {
   ref.store(value, cuda::std::memory_order_relaxed);
 #else
   __atomic_store_n(slot, value, __ATOMIC_RELAXED);
+#endif
+}
+
+// A word the host writes while kernels run (pinned host memory on a GPU),
+// read and written with system scope, relaxed.
+KINETRI_HD inline uint32_t LoadSystem(const uint32_t* word) {
+#ifdef KINETRI_HAS_LIBCUDACXX
+  cuda::atomic_ref<uint32_t, cuda::thread_scope_system> ref(
+      *const_cast<uint32_t*>(word));
+  return ref.load(cuda::std::memory_order_relaxed);
+#else
+  return __atomic_load_n(word, __ATOMIC_RELAXED);
+#endif
+}
+
+KINETRI_HD inline void StoreSystem(uint32_t* word, uint32_t value) {
+#ifdef KINETRI_HAS_LIBCUDACXX
+  cuda::atomic_ref<uint32_t, cuda::thread_scope_system> ref(*word);
+  ref.store(value, cuda::std::memory_order_relaxed);
+#else
+  __atomic_store_n(word, value, __ATOMIC_RELAXED);
 #endif
 }
 

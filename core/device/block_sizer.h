@@ -16,12 +16,19 @@
 // took over twice the quickest block's time too (halving cannot shorten a block
 // that is all fixed cost). Host code only, so it is tested without a GPU.
 //
-// Not settled on a GPU (docs/DEVICE.md): Thrust's for_each runs 256 threads
-// of 2 elements per CUDA block, so every block of up to 512 queries runs on
-// one multiprocessor, and past 256 a thread takes two queries one after the
-// other: a block of 328 takes twice one of 164 there, and the rule above
-// stops growing. KINETRI_DEVICE_QUERY_BLOCK=N (read once per process) makes
-// the device's first block N queries, to try that on a GPU.
+// The device's fill (GPU only): the queries that occupy every
+// multiprocessor once. Thrust's for_each runs 256 threads of 2 elements per
+// CUDA block, so a block of up to 512 queries runs on one multiprocessor,
+// and a block of 328 takes twice one of 164 (a thread takes its second
+// query after its first). The third GPU lease saw the rule above stop
+// there: 100K queries in blocks of about 164, each running on one of 132
+// multiprocessors (docs/DEVICE.md). Below the fill a block takes about as
+// long as at the fill (one query per thread, latency-bound), so on a GPU
+// the first block is the fill and a block never halves below it;
+// KINETRI_DEVICE_QUERY_BLOCK=N (read once per process) sets the first block
+// instead, on CPU threads too (a test runs a whole batch as one block
+// there). A long block is still stopped soon after cancellation: the
+// query kernels read a stop word (device_queries.inl).
 #ifndef KINETRI_CORE_DEVICE_BLOCK_SIZER_H_
 #define KINETRI_CORE_DEVICE_BLOCK_SIZER_H_
 
@@ -37,14 +44,18 @@ class BlockSizer {
   static constexpr double kTargetSeconds = 0.008;
   static constexpr double kLimitSeconds = 0.025;
 
-  // Blocks of at most max_block queries; fixed_cost_aware on a GPU, whose
-  // first block is first_block queries (0: kFirstBlock).
-  BlockSizer(size_t max_block, bool fixed_cost_aware, size_t first_block = 0)
+  // Blocks of at most max_block queries, the first of first_block queries
+  // (0: kFirstBlock, or the fill on a GPU); fixed_cost_aware on a GPU,
+  // whose blocks never halve below `fill` (0: none known).
+  BlockSizer(size_t max_block, bool fixed_cost_aware, size_t first_block = 0,
+             size_t fill = 0)
       : max_(std::max<size_t>(1, max_block)),
         fixed_cost_aware_(fixed_cost_aware),
-        block_(std::min(
-            fixed_cost_aware && first_block > 0 ? first_block : kFirstBlock,
-            max_)) {}
+        floor_(fixed_cost_aware ? std::min(fill, max_) : 0),
+        block_(std::min(first_block > 0 ? first_block
+                                        : std::max(kFirstBlock,
+                                                   fixed_cost_aware ? fill : 0),
+                        max_)) {}
 
   // KINETRI_DEVICE_QUERY_BLOCK, or 0 where it is unset or not a number.
   static size_t FirstBlockFromEnvironment() {
@@ -73,14 +84,15 @@ class BlockSizer {
       block_ = std::min(block_ * 2, max_);
     } else if (seconds > kTargetSeconds * 2 &&
                (!fixed_cost_aware_ || seconds > 2 * min_seconds_) &&
-               block_ > 1) {
-      block_ /= 2;
+               block_ > 1 && block_ > floor_) {
+      block_ = std::max(block_ / 2, std::max<size_t>(floor_, 1));
     }
   }
 
  private:
   size_t max_;
   bool fixed_cost_aware_;
+  size_t floor_;  // a GPU's fill: no halving below it
   size_t block_;
   size_t last_n_ = 0;  // the previous block's size and seconds
   double last_seconds_ = 0.0;

@@ -9,10 +9,13 @@
 // A batch runs in blocks of queries. Each block: prepare the queries (walk
 // position queries to their nearest site), count every row (stopping at
 // what the row may still hold under the per-row cut and the total limit),
-// scan the counts into offsets, fill the rows, put them in the exact order
-// of core/queries.h with one sort, and download. Between blocks the host
-// polls the cancellation token and checks the total limit; block sizes
-// adapt so that a block takes about BlockSizer::kTargetSeconds.
+// scan the counts into offsets, fill the rows (each sorted into the exact
+// order of core/queries.h by its own thread), and download. Between blocks the
+// host polls the cancellation token and checks the total limit; block sizes
+// adapt so that a block takes about BlockSizer::kTargetSeconds. While a
+// block runs, a host thread polls the token and raises a stop word that
+// the radius kernels read (pinned host memory on a GPU), so a block of
+// queries whose disks hold thousands of points stops soon too.
 #ifndef KINETRI_DEVICE_NS
 #error "define KINETRI_DEVICE_NS before including device_queries.inl"
 #endif
@@ -22,22 +25,25 @@
 #include <thrust/for_each.h>
 #include <thrust/iterator/counting_iterator.h>
 #include <thrust/scan.h>
-#include <thrust/sequence.h>
-#include <thrust/sort.h>
 #include <thrust/transform.h>
+#include <thrust/universal_vector.h>
 
 #include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <cmath>
+#include <condition_variable>
 #include <cstdint>
 #include <cstdio>
 #include <cstdlib>
 #include <memory>
 #include <mutex>
+#include <thread>
 #include <type_traits>
 #include <vector>
 
+#include "core/cancel.h"
+#include "core/device/atomic.h"
 #include "core/device/block_sizer.h"
 #include "core/device/device_executor.h"
 #include "core/device/profile.h"
@@ -102,49 +108,89 @@ struct KnnRows {
   }
 };
 
+// Whether the host raised the stop word. On CPU threads (a host word, read
+// in nanoseconds) before a row's search and every 64 sites after, so the
+// rows not begun yet when it rises end at once too. On a GPU the word is
+// pinned host memory, each read a round trip across the bus: on the fourth
+// lease the radius kernels took the same time whether their searches did a
+// third of the work or all of it, most likely these reads, one per row
+// (docs/DEVICE.md), so there it is read every 256 sites only (a row of a
+// few dozen sites never reads it; the long rows cancellation is for do).
+struct StopPoll {
+#if THRUST_DEVICE_SYSTEM == THRUST_DEVICE_SYSTEM_CUDA
+  static constexpr uint32_t kEvery = 256;
+  static constexpr bool kAtFirst = false;
+#else
+  static constexpr uint32_t kEvery = 64;
+  static constexpr bool kAtFirst = true;
+#endif
+  const uint32_t* word;
+  uint32_t sites = 0;
+  KINETRI_HD bool Stop() {
+    const uint32_t s = sites++;
+    return (s == 0 ? kAtFirst : s % kEvery == 0) && LoadSystem(word) != 0;
+  }
+};
+
 // Radius rows, first pass: points within r of each query, counted up to
 // `cap` (max_results + 1 when rows are cut, the rest of the total limit
-// + 1 when there is one). kept[i] is what the row will hold.
+// + 1 when there is one). kept[i] is what the row will hold. A raised stop
+// word ends the count early (the block's rows are then thrown away).
 struct RadiusCounts {
   TriangulationView v;
   const QueryItem* qs;
   double r;
   uint32_t max_results;
   uint32_t cap;
+  const uint32_t* stop;
   uint32_t* found;
   uint64_t* kept;
   KINETRI_HD void operator()(uint32_t i) const {
     const QueryItem& it = qs[i];
-    const uint32_t n = CountPointsWithin(v, it.q, r, it.root, it.self, cap);
+    // CountPointsWithin (core/query_search.h), polling the stop word.
+    uint32_t n = 0;
+    StopPoll poll{stop};
+    if (!poll.Stop()) {
+      DiskSearch(v, it.q, r, it.root, [&](uint32_t s) {
+        const uint32_t m = PointsOfSite(v, s, it.self);
+        n = m > cap - n ? cap : n + m;
+        return n < cap && !poll.Stop();
+      });
+    }
     found[i] = n;
     kept[i] = max_results != 0 && n > max_results ? max_results : n;
   }
 };
 
 // Radius rows, second pass: the points of each row (internal id, squared
-// distance) from offsets[i], and the row of each entry. A cut row holds
-// the max_results first points (the k-NN search: every one of them lies
-// in the disk, which holds more), already in order; the others come in
-// traversal order.
+// distance) from offsets[i]. A cut row holds the max_results first points
+// (the k-NN search: every one of them lies in the disk, which holds more),
+// already in order; the others come in traversal order, and `closest_first`
+// sorts each in its thread (core/query_search.h's SortRow: no global sort,
+// no memory). A raised stop word ends the row early (the block's rows are
+// then thrown away).
 struct RadiusFill {
   TriangulationView v;
   const QueryItem* qs;
   double r;
   uint32_t max_results;
+  bool closest_first;
+  const uint32_t* stop;
   const uint32_t* found;
   const uint64_t* offsets;
   KnnEntry* entries;
-  uint32_t* rows;
   KINETRI_HD void operator()(uint32_t i) const {
     const QueryItem& it = qs[i];
-    const uint64_t b = offsets[i], e = offsets[i + 1];
-    for (uint64_t j = b; j < e; ++j) rows[j] = i;
+    const uint64_t b = offsets[i];
     if (max_results != 0 && found[i] > max_results) {
       KNearestSearch(v, it.q, max_results, it.root, it.self, entries + b);
       return;
     }
     uint64_t j = b;
-    RadiusSearch(v, it.q, r, it.root, [&](uint32_t s) {
+    StopPoll poll{stop};
+    bool stopped = poll.Stop();
+    if (stopped) return;
+    DiskSearch(v, it.q, r, it.root, [&](uint32_t s) {
       const double d2 = SquaredDistance(it.q, v.pos[s]);
       if (v.dup_next[s] != kNoVertex && v.site_member_offsets != nullptr) {
         const uint32_t end = v.site_member_offsets[s + 1];
@@ -152,42 +198,28 @@ struct RadiusFill {
           const uint32_t ext = v.site_members[m];
           if (ext != it.self) entries[j++] = {v.int_of_ext[ext], d2};
         }
-        return;
+      } else {
+        for (uint32_t p = s; p != kNoVertex; p = v.dup_next[p]) {
+          if (v.ext_of_int[p] != it.self) entries[j++] = {p, d2};
+        }
       }
-      for (uint32_t p = s; p != kNoVertex; p = v.dup_next[p]) {
-        if (v.ext_of_int[p] != it.self) entries[j++] = {p, d2};
-      }
+      stopped = poll.Stop();
+      return !stopped;
     });
+    if (closest_first && !stopped) {
+      SortRow(v, it.q, entries + b, static_cast<uint32_t>(j - b));
+    }
   }
 };
 
-// Entry a before entry b: by row, then the exact order of core/queries.h
-// (distance from the row's query with exact near-ties, then external id).
-struct EntryBefore {
-  TriangulationView v;
-  const QueryItem* qs;
-  const KnnEntry* entries;
-  const uint32_t* rows;
-  KINETRI_HD bool operator()(uint32_t a, uint32_t b) const {
-    if (rows[a] != rows[b]) return rows[a] < rows[b];
-    const Vec2& q = qs[rows[a]].q;
-    const KnnEntry& x = entries[a];
-    const KnnEntry& y = entries[b];
-    const int c =
-        CompareCloserCached(q, v.pos[x.point], x.d2, v.pos[y.point], y.d2);
-    return c < 0 || (c == 0 && v.ext_of_int[x.point] < v.ext_of_int[y.point]);
-  }
-};
-
-// Output entry j from entries[order[j]] (order may be null: identity).
+// Output entry j from entries[j].
 struct WriteEntries {
   const uint32_t* ext_of_int;
   const KnnEntry* entries;
-  const uint32_t* order;
   uint32_t* ids;
   double* dist;  // null: no distances
   KINETRI_HD void operator()(uint64_t j) const {
-    const KnnEntry& e = entries[order != nullptr ? order[j] : j];
+    const KnnEntry& e = entries[j];
     ids[j] = ext_of_int[e.point];
     if (dist != nullptr) dist[j] = sqrt(e.d2);
   }
@@ -245,22 +277,89 @@ double SecondsSince(std::chrono::steady_clock::time_point t0) {
       .count();
 }
 
+// The queries that occupy every multiprocessor of the GPU once (its
+// multiprocessors times Thrust's 512 elements per CUDA block;
+// core/device/block_sizer.h); 0 on CPU threads.
+size_t DeviceFill() {
+#if THRUST_DEVICE_SYSTEM == THRUST_DEVICE_SYSTEM_CUDA
+  static const size_t fill = [] {
+    int device = 0, sms = 0;
+    if (cudaGetDevice(&device) != cudaSuccess ||
+        cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, device) !=
+            cudaSuccess) {
+      return size_t{0};
+    }
+    return static_cast<size_t>(std::max(sms, 0)) * 512;
+  }();
+  return fill;
+#else
+  return 0;
+#endif
+}
+
+// While alive, polls a cancellation token on a thread of its own (every
+// millisecond; none without a token) and raises the stop word the query
+// kernels read once the token fires.
+class StopWatcher {
+ public:
+  StopWatcher(const CancelToken* cancel, uint32_t* word)
+      : cancel_(cancel), word_(word) {
+    StoreSystem(word_, 0);
+    if (cancel_ != nullptr) thread_ = std::thread([this] { Watch(); });
+  }
+  StopWatcher(const StopWatcher&) = delete;
+  StopWatcher& operator=(const StopWatcher&) = delete;
+  ~StopWatcher() {
+    if (!thread_.joinable()) return;
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      done_ = true;
+    }
+    cv_.notify_one();
+    thread_.join();
+  }
+
+  // Whether the word was raised (the rows since are incomplete).
+  bool stopped() const { return LoadSystem(word_) != 0; }
+
+ private:
+  void Watch() {
+    std::unique_lock<std::mutex> lock(mu_);
+    while (!done_) {
+      if (cancel_->Cancelled()) {
+        StoreSystem(word_, 1);
+        return;
+      }
+      cv_.wait_for(lock, std::chrono::milliseconds(1));
+    }
+  }
+
+  const CancelToken* cancel_;
+  uint32_t* word_;
+  std::mutex mu_;
+  std::condition_variable cv_;
+  bool done_ = false;
+  std::thread thread_;
+};
+
 // Per-call device buffers, reused by later calls (a pool: no allocation
 // per call once the sizes are reached).
 struct Scratch {
   qthr::device_vector<QueryItem> items;
-  qthr::device_vector<uint32_t> targets, found, rows, order, ids;
+  qthr::device_vector<uint32_t> targets, found, ids;
   qthr::device_vector<Vec2> positions;
   qthr::device_vector<uint64_t> counts, offsets;
   qthr::device_vector<double> dist;
   qthr::device_vector<KnnEntry> slots, entries;
+  // The stop word (host memory the device reads; StopWatcher).
+  qthr::universal_host_pinned_vector<uint32_t> stop =
+      qthr::universal_host_pinned_vector<uint32_t>(1, 0u);
   std::vector<uint64_t> h_offsets;
   std::vector<uint8_t> h_truncated;
   std::vector<uint32_t> h_found;
   uint64_t bytes() const {
     return items.capacity() * sizeof(QueryItem) +
-           (targets.capacity() + found.capacity() + rows.capacity() +
-            order.capacity() + ids.capacity()) *
+           (targets.capacity() + found.capacity() + ids.capacity()) *
                sizeof(uint32_t) +
            positions.capacity() * sizeof(Vec2) +
            (counts.capacity() + offsets.capacity()) * sizeof(uint64_t) +
@@ -485,7 +584,8 @@ class QueryEngine {
     const size_t max_block = std::min(
         max_block_memory, large_blocks ? kMaxBlockLarge : kMaxBlockSmall);
     BlockSizer blocks(max_block, /*fixed_cost_aware=*/large_blocks,
-                      BlockSizer::FirstBlockFromEnvironment());
+                      BlockSizer::FirstBlockFromEnvironment(), DeviceFill());
+    StopWatcher watcher(cancel, qthr::raw_pointer_cast(w.stop.data()));
     uint64_t total = 0;
     uint64_t granted = 0;  // by q.limits.admit
     if (knn && view_.num_points > q.k) {
@@ -513,6 +613,7 @@ class QueryEngine {
       const uint64_t remaining = limit ? limit - total : UINT64_MAX;
       const uint64_t rows_total =
           knn ? KnnBlock(kk, nb, w) : RadiusBlock(q, nb, remaining, w);
+      if (watcher.stopped()) return cancel->Check("query");
       if (limit && rows_total > remaining) return ResultLimitError(limit);
       if (q.limits.admit && total + rows_total > granted) {
         const uint64_t step = QueryLimits::kAdmitStep;
@@ -600,9 +701,9 @@ class QueryEngine {
         qthr::counting_iterator<uint32_t>(nb),
         RadiusCounts{view_, QRaw(w.items), q.radius, q.max_results,
                      static_cast<uint32_t>(std::min<uint64_t>(cap, UINT32_MAX)),
-                     QRaw(w.found), QRaw(w.counts)});
+                     StopWord(w), QRaw(w.found), QRaw(w.counts)});
     const uint64_t total = ScanCounts(nb, w);
-    if (total > remaining) return total;
+    if (total > remaining || LoadSystem(StopWord(w)) != 0) return total;
     w.h_found.resize(nb);
     qthr::copy(w.found.begin(), w.found.end(), w.h_found.begin());
     w.h_truncated.resize(nb);
@@ -610,31 +711,22 @@ class QueryEngine {
       w.h_truncated[i] = q.max_results != 0 && w.h_found[i] > q.max_results;
     }
     w.entries.resize(total);
-    w.rows.resize(total);
-    qthr::for_each(
-        P(), qthr::counting_iterator<uint32_t>(0),
-        qthr::counting_iterator<uint32_t>(nb),
-        RadiusFill{view_, QRaw(w.items), q.radius, q.max_results, QRaw(w.found),
-                   QRaw(w.offsets), QRaw(w.entries), QRaw(w.rows)});
-    // Closest first: one sort by (row, exact order). Otherwise rows stay in
-    // traversal order (cut rows, from the k-NN search, are in order).
-    const uint32_t* order = nullptr;
-    if (q.rows.closest_first) {
-      w.order.resize(total);
-      qthr::sequence(P(), w.order.begin(), w.order.end());
-      qthr::sort(
-          P(), w.order.begin(), w.order.end(),
-          EntryBefore{view_, QRaw(w.items), QRaw(w.entries), QRaw(w.rows)});
-      order = QRaw(w.order);
-    }
+    qthr::for_each(P(), qthr::counting_iterator<uint32_t>(0),
+                   qthr::counting_iterator<uint32_t>(nb),
+                   RadiusFill{view_, QRaw(w.items), q.radius, q.max_results,
+                              q.rows.closest_first, StopWord(w), QRaw(w.found),
+                              QRaw(w.offsets), QRaw(w.entries)});
     w.ids.resize(total);
     w.dist.resize(q.rows.distances ? total : 0);
-    qthr::for_each(
-        P(), qthr::counting_iterator<uint64_t>(0),
-        qthr::counting_iterator<uint64_t>(total),
-        WriteEntries{QRaw(ext_of_int_), QRaw(w.entries), order, QRaw(w.ids),
-                     q.rows.distances ? QRaw(w.dist) : nullptr});
+    qthr::for_each(P(), qthr::counting_iterator<uint64_t>(0),
+                   qthr::counting_iterator<uint64_t>(total),
+                   WriteEntries{QRaw(ext_of_int_), QRaw(w.entries), QRaw(w.ids),
+                                q.rows.distances ? QRaw(w.dist) : nullptr});
     return total;
+  }
+
+  static const uint32_t* StopWord(Scratch& w) {
+    return qthr::raw_pointer_cast(w.stop.data());
   }
 
   // Largest blocks (GPUs need many queries in flight; CPU threads few);

@@ -77,16 +77,54 @@ TEST(BlockSizer, GpuBlocksOfHeavyQueriesStayShort) {
 }
 
 TEST(BlockSizer, AGivenFirstBlockOnAGpu) {
-  // The first block a GPU run asks for (KINETRI_DEVICE_QUERY_BLOCK); the
-  // CPU rule ignores it, and the largest block still caps it.
+  // The first block a run asks for (KINETRI_DEVICE_QUERY_BLOCK), on either
+  // rule; the largest block still caps it.
   EXPECT_EQ(BlockSizer(1 << 20, true, 16384).size(), 16384u);
-  EXPECT_EQ(BlockSizer(1 << 20, false, 16384).size(), BlockSizer::kFirstBlock);
+  EXPECT_EQ(BlockSizer(1 << 20, false, 16384).size(), 16384u);
   EXPECT_EQ(BlockSizer(1000, true, 16384).size(), 1000u);
   EXPECT_EQ(BlockSizer(1 << 20, true, 0).size(), BlockSizer::kFirstBlock);
   // From there the fixed-cost rule goes on: a block all fixed cost grows.
   BlockSizer sizer(1 << 20, true, 16384);
   sizer.Done(16384, 2e-3);
   EXPECT_EQ(sizer.size(), 32768u);
+}
+
+TEST(BlockSizer, GpuBlocksStartAtTheFillAndStayThere) {
+  // A GPU of 132 multiprocessors (a fill of 132 x 512 queries) where a
+  // query takes 4 ms on its thread and a wave of the fill runs at once: a
+  // block takes 4 ms per wave, whatever its size below the fill.
+  const size_t fill = 132 * 512;
+  auto seconds = [&](size_t n) { return 4e-3 * double((n + fill - 1) / fill); };
+  BlockSizer sizer(1 << 20, true, 0, fill);
+  EXPECT_EQ(sizer.size(), fill);
+  std::vector<size_t> sizes;
+  for (size_t done = 0; done < 1000000;) {
+    const size_t n = std::min(sizer.size(), 1000000 - done);
+    sizes.push_back(n);
+    sizer.Done(n, seconds(n));
+    done += n;
+  }
+  for (size_t n : sizes) EXPECT_GE(n, std::min(fill, sizes.back()));
+  EXPECT_LT(sizes.size(), 10u);
+  // Heavy queries (50 ms a wave): a block grows to two waves at most and
+  // halves when it gets slower, but not below the fill, where halving
+  // would not shorten it.
+  BlockSizer heavy(1 << 20, true, 0, fill);
+  for (int i = 0; i < 6; ++i) {
+    const size_t n = heavy.size();
+    heavy.Done(n, 0.05 * double((n + fill - 1) / fill));
+    EXPECT_GE(heavy.size(), fill);
+    EXPECT_LE(heavy.size(), 2 * fill);
+  }
+  heavy.Done(heavy.size(), 0.5);
+  EXPECT_EQ(heavy.size(), fill);
+  heavy.Done(fill, 0.5);
+  EXPECT_EQ(heavy.size(), fill);
+  // A given first block goes first; the CPU rule knows no fill.
+  EXPECT_EQ(BlockSizer(1 << 20, true, 4096, fill).size(), 4096u);
+  EXPECT_EQ(BlockSizer(1 << 20, false, 0, fill).size(),
+            BlockSizer::kFirstBlock);
+  EXPECT_EQ(BlockSizer(1000, true, 0, fill).size(), 1000u);
 }
 
 TEST(BlockSizer, NeverBeyondTheLargestBlock) {

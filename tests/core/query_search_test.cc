@@ -17,6 +17,9 @@ namespace {
 using testing::BruteRank;
 using testing::QueryPoints;
 
+// Disks SmallDiskSearch took whole, and ones it left to RadiusSearch.
+int small_disks = 0, large_disks = 0;
+
 // External ids of the points of the emitted sites, ascending; fails if a
 // site is emitted twice.
 std::vector<uint32_t> RadiusIds(const TriangulationView& v, const Vec2& q,
@@ -33,6 +36,25 @@ std::vector<uint32_t> RadiusIds(const TriangulationView& v, const Vec2& q,
   EXPECT_TRUE(std::adjacent_find(sites.begin(), sites.end()) == sites.end())
       << "a site was emitted twice";
   EXPECT_EQ(CountPointsWithin(v, q, r, root, self), ids.size());
+  // The breadth-first search of small disks: the same sites where the disk
+  // fits, none where it does not; DiskSearch either way.
+  std::vector<uint32_t> small;
+  uint32_t small_count = 0;
+  auto collect = [&](uint32_t s) { small.push_back(s); };
+  if (SmallDiskSearch(v, q, r, root, collect, &small_count)) {
+    ++small_disks;
+    EXPECT_LE(sites.size(), kSmallDiskSites);
+    EXPECT_EQ(small_count, small.size());
+    std::sort(small.begin(), small.end());
+    EXPECT_EQ(small, sites);
+  } else {
+    ++large_disks;
+    EXPECT_TRUE(small.empty());
+  }
+  small.clear();
+  EXPECT_EQ(DiskSearch(v, q, r, root, collect), sites.size());
+  std::sort(small.begin(), small.end());
+  EXPECT_EQ(small, sites);
   std::sort(ids.begin(), ids.end());
   return ids;
 }
@@ -108,7 +130,11 @@ void CheckSearches(const std::vector<Vec2>& pts, uint64_t seed) {
 }
 
 TEST(QuerySearch, Uniform) {
+  small_disks = large_disks = 0;
   CheckSearches(testing::UniformPoints(1500, 3), 4);
+  // Both ways of searching a disk were taken.
+  EXPECT_GT(small_disks, 100);
+  EXPECT_GT(large_disks, 100);
 }
 TEST(QuerySearch, Clustered) {
   CheckSearches(testing::ClusteredPoints(1500, 5), 6);

@@ -81,10 +81,11 @@ class DeployFilesTest(unittest.TestCase):
         container = sts["spec"]["template"]["spec"]["containers"][0]
         self.assertEqual(container["resources"]["limits"]["nvidia.com/gpu"], 1)
         self.assertEqual(container["image"], "kinetri-server:cuda")
-        # The server refuses --device=cuda until the CUDA backend passes
-        # its tests on a GPU (docs/DEVICE.md): a manifest passing it would
-        # never start.
+        # Sessions stay on the CPU executor (--device=auto), faster on the
+        # GPUs measured (docs/DEVICE.md); the manifest says how to change it.
         self.assertNotIn("--device=cuda", container["args"])
+        self.assertIn("add --device=cuda", (DEPLOY / "k8s-cuda" /
+                                            "kinetri-cuda.yaml").read_text())
 
     def test_k8s_probes_use_grpc_health(self):
         docs = list(yaml.safe_load_all((DEPLOY / "k8s" / "kinetri.yaml").read_text()))

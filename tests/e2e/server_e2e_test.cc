@@ -27,10 +27,13 @@ using core::CompareCloser;
 using core::CompareDistanceToRadius;
 using core::Vec2;
 
-// Built twice: for CPU sessions, and with KINETRI_E2E_DEVICE for sessions
+// Built three times: for CPU sessions, with KINETRI_E2E_DEVICE for sessions
 // on the device executor's emulated backend (server --device=emulated;
-// sessions ask BACKEND_AUTO and get it).
-#ifdef KINETRI_E2E_DEVICE
+// sessions ask BACKEND_AUTO and get it), and with KINETRI_E2E_CUDA for
+// sessions on the GPU (server --device=cuda; skipped without a GPU).
+#if defined(KINETRI_E2E_CUDA)
+constexpr char kBackend[] = "cuda";
+#elif defined(KINETRI_E2E_DEVICE)
 constexpr char kBackend[] = "emulated";
 #else
 constexpr char kBackend[] = "cpu";
@@ -487,12 +490,16 @@ TEST_F(E2eTest, PointsJoinAndLeave) {
                 ch.remove_ids.size() + ch.remove_client_ids.size());
       EXPECT_EQ(ack->stats().added_points(), add.size() / 2);
       EXPECT_EQ(ack->stats().point_count(), xy.size() / 2);
-      if (!with_client_ids) EXPECT_EQ(ack->stats().first_added_id(), survivors);
+      if (!with_client_ids) {
+        EXPECT_EQ(ack->stats().first_added_id(), survivors);
+      }
       EXPECT_EQ(client_->GetSession(s->name())->point_count(), xy.size() / 2);
       auto mesh = client_->Export(s->name());
       ASSERT_TRUE(mesh.ok()) << mesh.status();
       ASSERT_EQ(mesh->xy, xy);
-      if (with_client_ids) ASSERT_EQ(mesh->point_ids, cid);
+      if (with_client_ids) {
+        ASSERT_EQ(mesh->point_ids, cid);
+      }
       // k-NN of every 37th point against brute force.
       v1::QueryRequest q;
       q.set_session(s->name());
