@@ -413,14 +413,17 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   explicit RoundDeviceExecutor(DeviceBackend backend) : backend_(backend) {}
 
   DeviceBackend backend() const override { return backend_; }
-  void Invalidate() override { stale_ = true; }
+  void Invalidate() override { host_changed_ = true; }
 
   uint64_t device_bytes() const override {
     uint64_t words = 0;
-    for (const U32Vector* v :
-         {&origin_, &twin_, &vertex_edge_, &last_, &tri_claim_, &vert_claim_,
-          &work_, &bad_, &edges_, &joins_, &kinds_, &winners_, &win_edges_,
-          &next_, &touched_, &seeds_, &known_}) {
+    for (const U32Vector* v : {&origin_,      &twin_,      &vertex_edge_,
+                               &base_origin_, &base_twin_, &base_vertex_edge_,
+                               &last_,        &tri_claim_, &vert_claim_,
+                               &work_,        &bad_,       &edges_,
+                               &joins_,       &kinds_,     &winners_,
+                               &win_edges_,   &next_,      &touched_,
+                               &seeds_,       &known_}) {
       words += v->capacity();
     }
     return words * sizeof(uint32_t) + pos_.capacity() * sizeof(Vec2) +
@@ -441,13 +444,16 @@ class RoundDeviceExecutor final : public DeviceExecutor {
         stderr,
         "[device profile] %s executor: %llu attempts, %llu fixing "
         "and %llu legalizing rounds, %llu device algorithms; fix "
-        "%.3f s, legalize %.3f s, transfers %.3f s\n",
+        "%.3f s, legalize %.3f s, transfers %.3f s (%.1f MB up, %.1f MB "
+        "down)\n",
         DeviceBackendName(backend_),
         static_cast<unsigned long long>(totals_.attempts),
         static_cast<unsigned long long>(totals_.counts.fix_rounds),
         static_cast<unsigned long long>(totals_.counts.legalize_rounds),
         static_cast<unsigned long long>(totals_.calls), totals_.fix_seconds,
-        totals_.legalize_seconds, totals_.transfer_seconds);
+        totals_.legalize_seconds, totals_.transfer_seconds,
+        double(totals_.bytes_uploaded) * 1e-6,
+        double(totals_.bytes_downloaded) * 1e-6);
     std::fprintf(stderr,
                  "[device profile] time by call site (each algorithm and the "
                  "host work after it; line 0: before the first):\n");
@@ -471,14 +477,17 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     totals_.fix_seconds += out.fix_seconds;
     totals_.legalize_seconds += out.legalize_seconds;
     totals_.transfer_seconds += out.transfer_seconds;
+    totals_.bytes_uploaded += out.bytes_uploaded;
+    totals_.bytes_downloaded += out.bytes_downloaded;
     if (DeviceProfileLevel() >= 2) {
       std::fprintf(stderr,
                    "[device profile] attempt: %llu device algorithms, %u "
                    "fixing and %u legalizing rounds, fix %.6f s, legalize "
-                   "%.6f s, transfers %.6f s%s\n",
+                   "%.6f s, transfers %.6f s (%.1f MB up)%s\n",
                    static_cast<unsigned long long>(out.device_calls),
                    out.counts.fix_rounds, out.counts.legalize_rounds,
                    out.fix_seconds, out.legalize_seconds, out.transfer_seconds,
+                   double(out.bytes_uploaded) * 1e-6,
                    out.fixed       ? ""
                    : out.cancelled ? " (cancelled)"
                    : out.tangled   ? " (tangled)"
@@ -497,13 +506,28 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     auto t0 = std::chrono::steady_clock::now();
     const uint32_t nt = mesh.num_triangles();
     const uint32_t nv = mesh.num_vertices();
-    if (stale_ || origin_.size() != mesh.num_half_edges() || nv_ != nv) {
-      origin_.assign(mesh.origin().begin(), mesh.origin().end());
-      twin_.assign(mesh.twin().begin(), mesh.twin().end());
-      vertex_edge_.assign(mesh.vertex_edge().begin(), mesh.vertex_edge().end());
+    if (host_changed_ || base_origin_.size() != mesh.num_half_edges() ||
+        nv_ != nv) {
+      // The host mesh changed (or was never here): it becomes the base.
+      base_origin_.assign(mesh.origin().begin(), mesh.origin().end());
+      base_twin_.assign(mesh.twin().begin(), mesh.twin().end());
+      base_vertex_edge_.assign(mesh.vertex_edge().begin(),
+                               mesh.vertex_edge().end());
       out.bytes_uploaded += 8ull * mesh.num_half_edges() + 4ull * nv;
       nv_ = nv;
-      stale_ = false;
+      host_changed_ = false;
+      working_is_base_ = false;
+    }
+    if (!working_is_base_) {
+      // The attempt works on a copy of the base made on the device: a stuck
+      // or cancelled attempt leaves the host mesh as it was, and the next
+      // one starts again from the base without crossing the bus (on the
+      // fourth GPU lease the re-uploads of whole meshes after stuck
+      // attempts were most of a step's time at 1M points).
+      origin_.assign(base_origin_.begin(), base_origin_.end());
+      twin_.assign(base_twin_.begin(), base_twin_.end());
+      vertex_edge_.assign(base_vertex_edge_.begin(), base_vertex_edge_.end());
+      working_is_base_ = true;
     }
     pos_.assign(to.begin(), to.end());
     out.bytes_uploaded += sizeof(Vec2) * to.size();
@@ -539,7 +563,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     SortUnique(work_);
     touched_.clear();
     const bool keep_touched = seeds != nullptr;
-    stale_ = true;  // until the result is downloaded
+    working_is_base_ = false;  // the attempt changes it from here
     const int fixed = Fix(m, p, nt, nv, keep_touched, cancel, &out);
     out.fix_seconds = Since(t0);
     if (fixed < 0) {
@@ -586,7 +610,11 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     out.bytes_downloaded += 8ull * mesh.num_half_edges() + 4ull * nv;
     out.transfer_seconds += Since(t0);
     out.fixed = true;
-    stale_ = false;
+    // The result is the host mesh now: it becomes the base (the next attempt
+    // copies it back into the working arrays).
+    base_origin_.swap(origin_);
+    base_twin_.swap(twin_);
+    base_vertex_edge_.swap(vertex_edge_);
     return out;
   }
 
@@ -768,8 +796,11 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   }
 
   const DeviceBackend backend_;
-  bool stale_ = true;
+  bool host_changed_ = true;      // Invalidate(): the base is not the host's
+  bool working_is_base_ = false;  // origin_, twin_, vertex_edge_ == base
   uint32_t nv_ = 0;
+  // The host mesh on the device (the base) and the copy an attempt changes.
+  U32Vector base_origin_, base_twin_, base_vertex_edge_;
   U32Vector origin_, twin_, vertex_edge_;
   U32Vector last_;  // per vertex: last winner touching it (0 between rounds)
   thr::device_vector<Vec2> pos_;
@@ -790,6 +821,8 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     double fix_seconds = 0.0;
     double legalize_seconds = 0.0;
     double transfer_seconds = 0.0;
+    uint64_t bytes_uploaded = 0;
+    uint64_t bytes_downloaded = 0;
   } totals_;
   QueryEngine queries_;  // the query view and the queries over it
 };
