@@ -46,12 +46,16 @@ class BlockSizer {
 
   // Blocks of at most max_block queries, the first of first_block queries
   // (0: kFirstBlock, or the fill on a GPU); fixed_cost_aware on a GPU,
-  // whose blocks never halve below `fill` (0: none known).
+  // whose blocks never halve below `fill` (0: none known) or a smaller
+  // first block.
   BlockSizer(size_t max_block, bool fixed_cost_aware, size_t first_block = 0,
              size_t fill = 0)
       : max_(std::max<size_t>(1, max_block)),
         fixed_cost_aware_(fixed_cost_aware),
-        floor_(fixed_cost_aware ? std::min(fill, max_) : 0),
+        floor_(
+            fixed_cost_aware
+                ? std::min({fill, first_block > 0 ? first_block : fill, max_})
+                : 0),
         block_(std::min(first_block > 0 ? first_block
                                         : std::max(kFirstBlock,
                                                    fixed_cost_aware ? fill : 0),
@@ -69,6 +73,11 @@ class BlockSizer {
 
   // The size of the next block.
   size_t size() const { return block_; }
+
+  // The last block was cut to its first n queries (their results filled
+  // the memory a block may take): the next one takes n, below the fill
+  // too, so that the queries after a cut are not counted again and again.
+  void CutTo(size_t n) { block_ = std::max<size_t>(1, std::min(n, max_)); }
 
   // A block of n queries took `seconds`: sets the next size.
   void Done(size_t n, double seconds) {

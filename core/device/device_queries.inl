@@ -38,6 +38,10 @@
 #include <cstdlib>
 #include <memory>
 #include <mutex>
+#include <new>
+#include <stdexcept>
+#include <string>
+#include <system_error>
 #include <thread>
 #include <type_traits>
 #include <vector>
@@ -305,7 +309,12 @@ class StopWatcher {
   StopWatcher(const CancelToken* cancel, uint32_t* word)
       : cancel_(cancel), word_(word) {
     StoreSystem(word_, 0);
-    if (cancel_ != nullptr) thread_ = std::thread([this] { Watch(); });
+    if (cancel_ == nullptr) return;
+    try {
+      thread_ = std::thread([this] { Watch(); });
+    } catch (const std::system_error&) {
+      // No thread to spare: cancellation is still polled between blocks.
+    }
   }
   StopWatcher(const StopWatcher&) = delete;
   StopWatcher& operator=(const StopWatcher&) = delete;
@@ -391,7 +400,7 @@ class QueryEngine {
                                     bool large_blocks) {
     const auto t0 = std::chrono::steady_clock::now();
     absl::StatusOr<NeighborLists> out =
-        RunQuery(host, generation, q, large_blocks);
+        Guarded([&] { return RunQuery(host, generation, q, large_blocks); });
     const size_t count =
         q.kind == DeviceQuery::Kind::kAllNearest ? view_.num_points : q.size();
     runs_.fetch_add(1, std::memory_order_relaxed);
@@ -554,6 +563,21 @@ class QueryEngine {
     free_.push_back(s);
   }
 
+  // f(), with the exceptions of device allocations and calls (Thrust throws
+  // std::bad_alloc and thrust::system_error) as statuses.
+  template <typename F>
+  static absl::StatusOr<NeighborLists> Guarded(F&& f) {
+    try {
+      return f();
+    } catch (const std::bad_alloc&) {
+      return absl::ResourceExhaustedError(
+          "query: out of device memory for the answer");
+    } catch (const std::exception& e) {
+      return absl::InternalError(std::string("query: device error: ") +
+                                 e.what());
+    }
+  }
+
   // k-NN and radius rows, block by block.
   absl::StatusOr<NeighborLists> Rows(const DeviceQuery& q, bool large_blocks) {
     const size_t nq = q.size();
@@ -562,8 +586,12 @@ class QueryEngine {
     out.truncated.assign(nq, 0);
     if (nq == 0 || view_.num_sites == 0) return out;
     Scratch* scratch = Acquire();
+    struct ReleaseAtEnd {
+      QueryEngine* engine;
+      Scratch* scratch;
+      ~ReleaseAtEnd() { engine->Release(scratch); }
+    } release{this, scratch};
     absl::Status status = RowsWith(q, large_blocks, *scratch, &out);
-    Release(scratch);
     if (!status.ok()) return status;
     return out;
   }
@@ -585,7 +613,9 @@ class QueryEngine {
         max_block_memory, large_blocks ? kMaxBlockLarge : kMaxBlockSmall);
     BlockSizer blocks(max_block, /*fixed_cost_aware=*/large_blocks,
                       BlockSizer::FirstBlockFromEnvironment(), DeviceFill());
-    StopWatcher watcher(cancel, qthr::raw_pointer_cast(w.stop.data()));
+    // Only the radius kernels read the stop word (a k-NN row is short).
+    StopWatcher watcher(knn ? nullptr : cancel,
+                        qthr::raw_pointer_cast(w.stop.data()));
     uint64_t total = 0;
     uint64_t granted = 0;  // by q.limits.admit
     if (knn && view_.num_points > q.k) {
@@ -611,17 +641,38 @@ class QueryEngine {
       blocks_.fetch_add(1, std::memory_order_relaxed);
       Prepare(q, begin, nb, w);
       const uint64_t remaining = limit ? limit - total : UINT64_MAX;
-      const uint64_t rows_total =
-          knn ? KnnBlock(kk, nb, w) : RadiusBlock(q, nb, remaining, w);
-      if (watcher.stopped()) return cancel->Check("query");
-      if (limit && rows_total > remaining) return ResultLimitError(limit);
+      uint64_t rows_total;
+      uint32_t rows = nb;  // the rows of the block appended below
+      if (knn) {
+        rows_total = KnnBlock(kk, nb, w);
+      } else {
+        rows_total = RadiusCount(q, nb, remaining, w);
+        if (watcher.stopped()) return cancel->Check("query");
+        if (limit && rows_total > remaining) return ResultLimitError(limit);
+        // The rows filled at once stay within kMaxBlockResultBytes: the
+        // block ends after the last row that fits (one row at least); the
+        // rows after it are counted again by the next block.
+        const uint64_t fits = MaxBlockResults();
+        rows = static_cast<uint32_t>(
+            std::upper_bound(w.h_offsets.begin() + 1,
+                             w.h_offsets.begin() + nb + 1, fits) -
+            (w.h_offsets.begin() + 1));
+        rows = std::max<uint32_t>(rows, 1);
+        rows_total = w.h_offsets[rows];
+      }
+      // Admitted before the rows are filled (they are allocated there).
       if (q.limits.admit && total + rows_total > granted) {
         const uint64_t step = QueryLimits::kAdmitStep;
         granted = (total + rows_total + step - 1) / step * step;
         if (absl::Status s = q.limits.admit(granted); !s.ok()) return s;
       }
+      if (!knn) {
+        RadiusRows(q, rows, rows_total, w);
+        // Rows a raised stop word ended are incomplete.
+        if (watcher.stopped()) return cancel->Check("query");
+      }
       // Append the block's rows.
-      for (uint32_t i = 0; i < nb; ++i) {
+      for (uint32_t i = 0; i < rows; ++i) {
         out->offsets[begin + i + 1] = total + w.h_offsets[i + 1];
         out->truncated[begin + i] = w.h_truncated[i];
       }
@@ -632,8 +683,12 @@ class QueryEngine {
         Download(w.dist, rows_total, &out->distances, total);
       }
       total += rows_total;
-      begin += nb;
-      blocks.Done(nb, SecondsSince(t0));
+      begin += rows;
+      if (rows < nb) {
+        blocks.CutTo(rows);
+      } else {
+        blocks.Done(rows, SecondsSince(t0));
+      }
     }
     return absl::OkStatus();
   }
@@ -687,9 +742,10 @@ class QueryEngine {
     return total;
   }
 
-  // Returns the block's total; more than `remaining` means refused (the
-  // rows are then not filled).
-  uint64_t RadiusBlock(const DeviceQuery& q, uint32_t nb, uint64_t remaining,
+  // Counts the block's radius rows (w.found, w.offsets, w.h_offsets,
+  // w.h_truncated); returns the block's total (more than `remaining`:
+  // refused, and counted no further than that).
+  uint64_t RadiusCount(const DeviceQuery& q, uint32_t nb, uint64_t remaining,
                        Scratch& w) {
     uint64_t cap = UINT32_MAX;
     if (q.max_results != 0) cap = uint64_t{q.max_results} + 1;
@@ -710,6 +766,12 @@ class QueryEngine {
     for (uint32_t i = 0; i < nb; ++i) {
       w.h_truncated[i] = q.max_results != 0 && w.h_found[i] > q.max_results;
     }
+    return total;
+  }
+
+  // Fills the first nb counted rows (`total` entries) into w.ids, w.dist.
+  void RadiusRows(const DeviceQuery& q, uint32_t nb, uint64_t total,
+                  Scratch& w) {
     w.entries.resize(total);
     qthr::for_each(P(), qthr::counting_iterator<uint32_t>(0),
                    qthr::counting_iterator<uint32_t>(nb),
@@ -722,7 +784,6 @@ class QueryEngine {
                    qthr::counting_iterator<uint64_t>(total),
                    WriteEntries{QRaw(ext_of_int_), QRaw(w.entries), QRaw(w.ids),
                                 q.rows.distances ? QRaw(w.dist) : nullptr});
-    return total;
   }
 
   static const uint32_t* StopWord(Scratch& w) {
@@ -734,6 +795,22 @@ class QueryEngine {
   static constexpr size_t kMaxBlockSmall = size_t{1} << 14;
   static constexpr size_t kMaxBlockLarge = size_t{1} << 20;
   static constexpr size_t kMaxSlotBytes = size_t{64} << 20;
+  // The device memory of one radius block's results (an entry, an id and a
+  // distance each).
+  static constexpr uint64_t kResultBytes =
+      sizeof(KnnEntry) + sizeof(uint32_t) + sizeof(double);
+  static constexpr uint64_t kMaxBlockResultBytes = uint64_t{256} << 20;
+  // The results of one radius block: kMaxBlockResultBytes' worth, or
+  // KINETRI_DEVICE_BLOCK_RESULTS (read once per process; tests cut blocks
+  // with it).
+  static uint64_t MaxBlockResults() {
+    static const uint64_t n = [] {
+      const char* v = std::getenv("KINETRI_DEVICE_BLOCK_RESULTS");
+      const uint64_t given = v ? std::strtoull(v, nullptr, 10) : 0;
+      return given > 0 ? given : kMaxBlockResultBytes / kResultBytes;
+    }();
+    return n;
+  }
 
   mutable std::mutex mu_;
   ScratchPool pool_;  // Thrust's temporaries of every call

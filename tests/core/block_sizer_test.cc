@@ -122,9 +122,32 @@ TEST(BlockSizer, GpuBlocksStartAtTheFillAndStayThere) {
   EXPECT_EQ(heavy.size(), fill);
   // A given first block goes first; the CPU rule knows no fill.
   EXPECT_EQ(BlockSizer(1 << 20, true, 4096, fill).size(), 4096u);
+  // A given first block below the fill lowers the floor with it: blocks
+  // still halve when slow.
+  BlockSizer given(1 << 20, true, 4096, fill);
+  given.Done(4096, 1e-3);
+  given.Done(given.size(), 0.5);
+  EXPECT_EQ(given.size(), 4096u);
+  given.Done(4096, 0.5);
+  EXPECT_EQ(given.size(), 4096u);
   EXPECT_EQ(BlockSizer(1 << 20, false, 0, fill).size(),
             BlockSizer::kFirstBlock);
   EXPECT_EQ(BlockSizer(1000, true, 0, fill).size(), 1000u);
+}
+
+TEST(BlockSizer, ACutBlockSetsTheNext) {
+  // Results over a block's memory: the next block is what fitted, below
+  // the fill too; from there the rules go on.
+  BlockSizer sizer(1 << 20, true, 0, 67584);
+  sizer.CutTo(300);
+  EXPECT_EQ(sizer.size(), 300u);
+  sizer.CutTo(0);
+  EXPECT_EQ(sizer.size(), 1u);
+  sizer.Done(1, 1e-4);
+  EXPECT_EQ(sizer.size(), 2u);
+  BlockSizer small(100, false);
+  small.CutTo(5000);
+  EXPECT_EQ(small.size(), 100u);
 }
 
 TEST(BlockSizer, NeverBeyondTheLargestBlock) {
