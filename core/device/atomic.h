@@ -43,18 +43,26 @@ KINETRI_HD inline void ClaimMax(uint32_t* slot, uint32_t value) {
 #endif
 }
 
-// *slot = value for a slot other threads may write the same value to.
+// *slot = value for a slot other threads may write the same value to;
+// kSystem: a word the host reads or writes while kernels run (pinned host
+// memory on a GPU), with system scope.
+template <bool kSystem = false>
 KINETRI_HD inline void StoreRelaxed(uint32_t* slot, uint32_t value) {
 #ifdef KINETRI_HAS_LIBCUDACXX
-  cuda::atomic_ref<uint32_t, cuda::thread_scope_device> ref(*slot);
+  cuda::atomic_ref<uint32_t, kSystem ? cuda::thread_scope_system
+                                     : cuda::thread_scope_device>
+      ref(*slot);
   ref.store(value, cuda::std::memory_order_relaxed);
 #else
   __atomic_store_n(slot, value, __ATOMIC_RELAXED);
 #endif
 }
 
-// A word the host writes while kernels run (pinned host memory on a GPU),
-// read and written with system scope, relaxed.
+KINETRI_HD inline void StoreSystem(uint32_t* word, uint32_t value) {
+  StoreRelaxed</*kSystem=*/true>(word, value);
+}
+
+// *word, read with system scope, relaxed (see StoreRelaxed).
 KINETRI_HD inline uint32_t LoadSystem(const uint32_t* word) {
 #ifdef KINETRI_HAS_LIBCUDACXX
   cuda::atomic_ref<uint32_t, cuda::thread_scope_system> ref(
@@ -62,15 +70,6 @@ KINETRI_HD inline uint32_t LoadSystem(const uint32_t* word) {
   return ref.load(cuda::std::memory_order_relaxed);
 #else
   return __atomic_load_n(word, __ATOMIC_RELAXED);
-#endif
-}
-
-KINETRI_HD inline void StoreSystem(uint32_t* word, uint32_t value) {
-#ifdef KINETRI_HAS_LIBCUDACXX
-  cuda::atomic_ref<uint32_t, cuda::thread_scope_system> ref(*word);
-  ref.store(value, cuda::std::memory_order_relaxed);
-#else
-  __atomic_store_n(word, value, __ATOMIC_RELAXED);
 #endif
 }
 
