@@ -198,17 +198,24 @@ KINETRI_HD inline uint32_t PointsOfSite(const TriangulationView& v, uint32_t s,
   return n;
 }
 
+// A stop check that never stops (CountPointsWithin's default).
+struct NeverStop {
+  KINETRI_HD bool operator()() const { return false; }
+};
+
 // Number of points (not sites) within r of q, `self` (an external id, or
-// kNoVertex) excluded; the search stops once the count reaches `cap`.
-KINETRI_HD inline uint32_t CountPointsWithin(const TriangulationView& v,
-                                             const Vec2& q, double r,
-                                             uint32_t root, uint32_t self,
-                                             uint32_t cap = UINT32_MAX) {
+// kNoVertex) excluded; the search stops once the count reaches `cap`, or
+// when stop() returns true after a site (the count is then short).
+template <typename Stop = NeverStop>
+KINETRI_HD uint32_t CountPointsWithin(const TriangulationView& v, const Vec2& q,
+                                      double r, uint32_t root, uint32_t self,
+                                      uint32_t cap = UINT32_MAX,
+                                      Stop&& stop = {}) {
   uint32_t points = 0;
-  RadiusSearch(v, q, r, root, [&](uint32_t s) {
+  DiskSearch(v, q, r, root, [&](uint32_t s) {
     const uint32_t n = PointsOfSite(v, s, self);
     points = n > cap - points ? cap : points + n;
-    return points < cap;
+    return points < cap && !stop();
   });
   return points;
 }

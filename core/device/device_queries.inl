@@ -151,16 +151,11 @@ struct RadiusCounts {
   uint64_t* kept;
   KINETRI_HD void operator()(uint32_t i) const {
     const QueryItem& it = qs[i];
-    // CountPointsWithin (core/query_search.h), polling the stop word.
-    uint32_t n = 0;
     StopPoll poll{stop};
-    if (!poll.Stop()) {
-      DiskSearch(v, it.q, r, it.root, [&](uint32_t s) {
-        const uint32_t m = PointsOfSite(v, s, it.self);
-        n = m > cap - n ? cap : n + m;
-        return n < cap && !poll.Stop();
-      });
-    }
+    const uint32_t n =
+        poll.Stop() ? 0
+                    : CountPointsWithin(v, it.q, r, it.root, it.self, cap,
+                                        [&] { return poll.Stop(); });
     found[i] = n;
     kept[i] = max_results != 0 && n > max_results ? max_results : n;
   }
@@ -744,7 +739,8 @@ class QueryEngine {
 
   // Counts the block's radius rows (w.found, w.offsets, w.h_offsets,
   // w.h_truncated); returns the block's total (more than `remaining`:
-  // refused, and counted no further than that).
+  // refused, and counted no further than that; short where the stop word
+  // rose, which the caller checks).
   uint64_t RadiusCount(const DeviceQuery& q, uint32_t nb, uint64_t remaining,
                        Scratch& w) {
     uint64_t cap = UINT32_MAX;
@@ -759,7 +755,7 @@ class QueryEngine {
                      static_cast<uint32_t>(std::min<uint64_t>(cap, UINT32_MAX)),
                      StopWord(w), QRaw(w.found), QRaw(w.counts)});
     const uint64_t total = ScanCounts(nb, w);
-    if (total > remaining || LoadSystem(StopWord(w)) != 0) return total;
+    if (total > remaining) return total;
     w.h_found.resize(nb);
     qthr::copy(w.found.begin(), w.found.end(), w.h_found.begin());
     w.h_truncated.resize(nb);
