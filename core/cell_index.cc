@@ -28,16 +28,10 @@ struct Box {
   }
 };
 
-}  // namespace
-
-std::optional<CellIndex> CellIndex::Build(const TriangulationView& v,
-                                          double cell, const Limits& limits) {
-  const uint32_t ns = v.num_sites;
-  if (ns == 0 || !(cell > 0.0) || !std::isfinite(1.0 / cell)) {
-    return std::nullopt;
-  }
-  const Box box = tbb::parallel_reduce(
-      tbb::blocked_range<uint32_t>(0, ns, 4096), Box{},
+// The bounding box of v's sites (in parallel).
+Box SitesBox(const TriangulationView& v) {
+  return tbb::parallel_reduce(
+      tbb::blocked_range<uint32_t>(0, v.num_sites, 4096), Box{},
       [&](const tbb::blocked_range<uint32_t>& r, Box b) {
         for (uint32_t i = r.begin(); i != r.end(); ++i)
           b.Add(v.pos[v.sites[i]]);
@@ -47,7 +41,28 @@ std::optional<CellIndex> CellIndex::Build(const TriangulationView& v,
         a.Add(b);
         return a;
       });
+}
+
+}  // namespace
+
+double CellIndex::SideForOccupancy(const TriangulationView& v,
+                                   double sites_per_cell) {
+  if (v.num_sites == 0 || !(sites_per_cell > 0.0)) return 0.0;
+  const Box box = SitesBox(v);
+  const double area = (box.hi_x - box.lo_x) * (box.hi_y - box.lo_y);
+  const double side = std::sqrt(area * sites_per_cell / v.num_sites);
+  return std::isfinite(side) && std::isfinite(1.0 / side) ? side : 0.0;
+}
+
+std::optional<CellIndex> CellIndex::Build(const TriangulationView& v,
+                                          double cell, const Limits& limits) {
+  const uint32_t ns = v.num_sites;
+  if (ns == 0 || !(cell > 0.0) || !std::isfinite(1.0 / cell)) {
+    return std::nullopt;
+  }
+  const Box box = SitesBox(v);
   CellIndex g;
+  g.side_ = cell;
   g.inv_ = 1.0 / cell;
   const double cx = std::floor((box.hi_x - box.lo_x) * g.inv_) + 1.0;
   const double cy = std::floor((box.hi_y - box.lo_y) * g.inv_) + 1.0;

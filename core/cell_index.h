@@ -42,6 +42,13 @@ class CellIndex {
   // parallel: call inside the triangulation's thread arena.
   static std::optional<CellIndex> Build(const TriangulationView& v, double cell,
                                         const Limits& limits);
+  // The cell side at which cells over the bounding box of v's sites would
+  // hold `sites_per_cell` sites on average, or 0 when there is none (no
+  // sites, or a box of no area: the sites on a line).
+  static double SideForOccupancy(const TriangulationView& v,
+                                 double sites_per_cell);
+  // The cell side.
+  double side() const { return side_; }
 
   // Sites per occupied cell, as a site sees it (the mean over sites of the
   // count of their own cell).
@@ -112,7 +119,7 @@ class CellIndex {
     return static_cast<uint32_t>(t);
   }
 
-  double x0_ = 0.0, y0_ = 0.0, inv_ = 1.0;
+  double x0_ = 0.0, y0_ = 0.0, inv_ = 1.0, side_ = 1.0;
   uint32_t nx_ = 1, ny_ = 1;
   bool sparse_ = false;
   double occupancy_ = 0.0;

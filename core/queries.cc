@@ -6,6 +6,9 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#if defined(__linux__)
+#include <sys/mman.h>
+#endif
 #include <memory>
 #include <mutex>
 #include <optional>
@@ -168,12 +171,14 @@ std::vector<Query> PointQueries(const Triangulation& t,
                                 bool exclude_self) {
   const TriangulationView v = t.view();
   std::vector<Query> out(ids.size());
-  for (size_t i = 0; i < ids.size(); ++i) {
-    const uint32_t in = v.int_of_ext[ids[i]];
-    out[i].q = v.pos[in];
-    out[i].self_ext = exclude_self ? ids[i] : kNoVertex;
-    out[i].start_site = v.rep[in];
-  }
+  t.Run([&] {
+    ParallelFor(0, ids.size(), [&](size_t i) {
+      const uint32_t in = v.int_of_ext[ids[i]];
+      out[i].q = v.pos[in];
+      out[i].self_ext = exclude_self ? ids[i] : kNoVertex;
+      out[i].start_site = v.rep[in];
+    });
+  });
   return out;
 }
 
@@ -206,7 +211,27 @@ inline void CopyIds(const uint32_t* from, uint64_t len, uint32_t* to) {
   }
 }
 
-// Rows of every query by row_fn. `width` > 0 promises that every complete
+// Reserves room for n elements in v and, on Linux, asks for huge pages
+// for it: an answer of many rows (a 1M-point 8-NN writes 96 MB) page-faults
+// once per 2 MB instead of once per 4 KB as it is first written.
+template <typename T>
+void HugePages(std::vector<T>& v, size_t n) {
+  v.reserve(n);
+#if defined(__linux__) && defined(MADV_HUGEPAGE)
+  constexpr uintptr_t kHuge = uintptr_t{1} << 21;
+  const uintptr_t begin = reinterpret_cast<uintptr_t>(v.data());
+  const uintptr_t end = begin + n * sizeof(T);
+  const uintptr_t first = (begin + kHuge - 1) & ~(kHuge - 1);
+  const uintptr_t last = end & ~(kHuge - 1);
+  if (last > first) {
+    madvise(reinterpret_cast<void*>(first), last - first, MADV_HUGEPAGE);
+  }
+#endif
+}
+
+// Rows of every query by row_fn, which gets the query's nearest site as
+// `root` (find_root false: the site its walk would start from, for a row
+// that may not need it). `width` > 0 promises that every complete
 // row has exactly that many results (k-NN of a set with more than k
 // points): the answer's size is then known before any row is built, so it
 // is checked against max_total_results and admitted in one call up front,
@@ -216,7 +241,8 @@ template <typename RowFn>
 absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
                                       const std::vector<Query>& queries,
                                       QueryLimits limits, bool distances,
-                                      RowFn&& row_fn, size_t width = 0) {
+                                      RowFn&& row_fn, size_t width = 0,
+                                      bool find_root = true) {
   const size_t nq = queries.size();
   if (t.num_sites() == 0) width = 0;
   NeighborLists fixed;
@@ -232,8 +258,12 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
         return s;
       }
     }
+    HugePages(fixed.ids, all);
     fixed.ids.resize(all);
-    if (distances) fixed.distances.resize(all);
+    if (distances) {
+      HugePages(fixed.distances, all);
+      fixed.distances.resize(all);
+    }
   }
   // Set when a row of a fixed-width answer came out shorter (never
   // expected): the query is then answered the general way.
@@ -310,8 +340,11 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
               const uint32_t s = sorted_start[j];
               // A query at a site's own position (queries of points)
               // starts there: distance 0 comes first, no walk needed.
-              const uint32_t root =
-                  v.pos[s] == q.q ? s : WalkToNearestSite(v, q.q, s);
+              // (Without find_root, row_fn gets the start site and walks
+              // from it only if it needs the nearest site.)
+              const uint32_t root = !find_root || v.pos[s] == q.q
+                                        ? s
+                                        : WalkToNearestSite(v, q.q, s);
               row.clear();
               RowBudget budget;
               budget.cancel = limits.cancel;
@@ -493,18 +526,158 @@ int KnnRow(const TriangulationView& v, const Query& q, uint32_t root,
   return kRowComplete;
 }
 
+// k nearest from a cell index (KnnCells): the sites of the cells that meet
+// the square [q - r, q + r]^2 that may lie within r of q (squared distance
+// in double within rounding of r^2) are kept; once `want` of them (the
+// query's own point excluded) lie within r for certain, every point that
+// comes before the want-th one in q's order is closer, so among the kept
+// ones, and sorting them in the exact order gives the row. Otherwise r
+// grows by half and the cells are scanned again. The first r of a row is
+// the previous row's want-th distance on this thread, enlarged a little
+// (rows run in spatial order, so it nearly fits), or `r0` after another
+// index. Returns false, with `out` unspecified, when the graph must answer
+// the row: a site of several points is a candidate, or the candidates
+// pass a bound (the density changed sharply).
+bool KnnCellsRow(const CellIndex& cells, const Query& q, size_t want, double r0,
+                 std::vector<Hit>& out) {
+  // Enlarging the last row's want-th distance by this keeps about 1.4
+  // times want candidates in a disk: one scan suffices for most rows.
+  constexpr double kGuessGrowth = 1.2;
+  constexpr double kRetryGrowth = 1.5;
+  struct Guess {
+    const CellIndex* cells = nullptr;
+    double r = 0.0;
+  };
+  thread_local Guess guess;
+  // (A last row whose want-th point is at distance 0 leaves no guess.)
+  double r = guess.cells == &cells && guess.r > 0.0 ? guess.r : r0;
+  const size_t max_kept = 64 * want + 256;
+  const Vec2* pos = cells.positions();
+  const uint32_t* exts = cells.exts();
+  // The candidates that may lie in the disk, in a per-thread buffer sized
+  // once (written past their count, without a branch on the outcome).
+  std::vector<std::pair<double, uint32_t>>& buffer =
+      Scratch<std::pair<double, uint32_t>>();
+  if (buffer.size() < max_kept) buffer.resize(max_kept);
+  std::pair<double, uint32_t>* const kept = buffer.data();
+  size_t num_kept;
+  while (true) {
+    const double rr = r * r;
+    // As in the radius filter: below `inside` within r for certain, above
+    // `outside` beyond it.
+    const double inside = rr * (1.0 - 3.0 * internal::kDistErrBound);
+    const double outside = rr * (1.0 + 3.0 * internal::kDistErrBound);
+    size_t m = 0, in = 0;
+    bool several = false, overflow = false;
+    cells.ForEachRun(q.q, r, [&](uint32_t b, uint32_t e) {
+      if (m + (e - b) > max_kept) {
+        overflow = true;
+        return false;
+      }
+      for (uint32_t c = b; c < e; ++c) {
+        const double dw = SquaredDistance(q.q, pos[c]);
+        const uint32_t ext = exts[c];
+        kept[m] = {dw, c};
+        // (Sites of several points have no ext: never the query's own.)
+        const bool keep =
+            (dw <= outside) & ((ext != q.self_ext) | (ext == kNoVertex));
+        m += keep;
+        in += keep & (dw < inside);
+        several |= keep & (ext == kNoVertex);
+      }
+      return true;
+    });
+    if (overflow || several) {
+      guess.cells = nullptr;  // the next row starts from r0
+      return false;
+    }
+    if (in >= want) {
+      num_kept = m;
+      break;
+    }
+    r *= kRetryGrowth;
+  }
+  // Closest first: by the squared distances in double, then an insertion
+  // pass in the exact order (it moves only near-ties).
+  auto by_d2 = [](const std::pair<double, uint32_t>& a,
+                  const std::pair<double, uint32_t>& b) {
+    return a.first < b.first;
+  };
+  if (num_kept <= 32) {
+    for (size_t i = 1; i < num_kept; ++i) {
+      const auto x = kept[i];
+      size_t j = i;
+      for (; j > 0 && by_d2(x, kept[j - 1]); --j) kept[j] = kept[j - 1];
+      kept[j] = x;
+    }
+  } else {
+    std::sort(kept, kept + num_kept, by_d2);
+  }
+  for (size_t i = 1; i < num_kept; ++i) {
+    const auto x = kept[i];
+    size_t j = i;
+    while (j > 0 && CompareCloserCached(q.q, pos[x.second], x.first,
+                                        pos[kept[j - 1].second],
+                                        kept[j - 1].first) < 0) {
+      kept[j] = kept[j - 1];
+      --j;
+    }
+    kept[j] = x;
+  }
+  out.resize(want);
+  for (size_t i = 0; i < want; ++i) {
+    out[i] = {exts[kept[i].second], std::sqrt(kept[i].first)};
+  }
+  guess = {&cells, std::sqrt(kept[want - 1].first) * kGuessGrowth};
+  return true;
+}
+
+// Sites per cell of the k-nearest queries' cell index, and the most
+// (as a site sees it: the mean over sites of its own cell's count; about
+// one more than the mean for uniform points) before the graph is used
+// instead: crowded cells (clustered points) cost a scan of all their sites
+// for every query in them.
+constexpr double kKnnCellsSitesPerCell = 2.0;
+constexpr double kKnnCellsMaxOccupancy = 4.0 * (kKnnCellsSitesPerCell + 1.0);
+// The cell index serves k up to this; it pays for batches of at least one
+// query per kCellsMinQueriesPerSite sites (below).
+constexpr int kKnnCellsMaxK = 64;
+constexpr size_t kKnnCellsMinSites = 4096;
+
+std::shared_ptr<const CellIndex> KnnCells(const Triangulation& t, int k,
+                                          size_t num_queries,
+                                          RowOptions options);
+
 absl::StatusOr<NeighborLists> KNearestImpl(const Triangulation& t,
                                            const std::vector<Query>& queries,
-                                           int k, QueryLimits limits) {
+                                           int k, QueryLimits limits,
+                                           RowOptions options) {
   const size_t want = static_cast<size_t>(k);
+  const std::shared_ptr<const CellIndex> index =
+      KnnCells(t, k, queries.size(), options);
+  const CellIndex* cells = index.get();
+  // The first radius tried: where a disk holds want + 1 sites and a few
+  // more (the query's own point may be one) at the mean density.
+  const double r0 =
+      cells == nullptr
+          ? 0.0
+          : cells->side() *
+                std::sqrt((double(want) + 2.0 + 2.0 * std::sqrt(want + 1.0)) /
+                          (3.14159 * kKnnCellsSitesPerCell));
   return RunRows(
       t, queries, limits, /*distances=*/true,
-      [want](const TriangulationView& v, const Query& q, uint32_t root,
-             const RowBudget& budget, std::vector<Hit>& out) {
+      [want, cells, r0](const TriangulationView& v, const Query& q,
+                        uint32_t root, const RowBudget& budget,
+                        std::vector<Hit>& out) {
+        if (cells == nullptr) return KnnRow(v, q, root, want, budget, out);
+        if (KnnCellsRow(*cells, q, want, r0, out)) return int{kRowComplete};
+        // `root` is where the walk to the nearest site starts.
+        out.clear();
+        if (v.pos[root] != q.q) root = WalkToNearestSite(v, q.q, root);
         return KnnRow(v, q, root, want, budget, out);
       },
       // Every row holds k points when the set has more than k.
-      t.size() > want ? want : 0);
+      t.size() > want ? want : 0, /*find_root=*/cells == nullptr);
 }
 
 // Disks expected to hold at least this many sites are scanned in a cell
@@ -562,10 +735,55 @@ std::shared_ptr<const CellIndex> RadiusCells(const Triangulation& t, double r,
   // the graph, 77-82 ms with an index built for them).
   const uint64_t batch = std::max<uint64_t>(num_queries, options.batch_queries);
   if (batch * kCellsMinQueriesPerSite < v.num_sites &&
-      !t.HasCachedCellIndex(r)) {
+      !t.HasCachedCellIndex(Triangulation::CellIndexUse::kRadius, r)) {
     return nullptr;
   }
-  return t.CachedCellIndex(r, build);
+  return t.CachedCellIndex(Triangulation::CellIndexUse::kRadius, r, build);
+}
+
+// The cell index a k-nearest batch scans, or null when the plan says:
+// walk the graph. kAuto builds it for large batches of k up to
+// kKnnCellsMaxK on sets of at least kKnnCellsMinSites sites spread evenly
+// enough, and caches it for the step (any k) with its decision.
+std::shared_ptr<const CellIndex> KnnCells(const Triangulation& t, int k,
+                                          size_t num_queries,
+                                          RowOptions options) {
+  using Plan = RowOptions::Plan;
+  if (options.plan == Plan::kGraph || !t.is_planar() || num_queries == 0 ||
+      k < 1 || t.size() <= static_cast<size_t>(k) + 1) {
+    return nullptr;
+  }
+  const TriangulationView v = t.view();
+  // k = 1 walks to the nearest site anyway (the walk is the answer).
+  if (k > kKnnCellsMaxK || (options.plan == Plan::kAuto &&
+                            (k < 2 || v.num_sites < kKnnCellsMinSites))) {
+    return nullptr;
+  }
+  auto build = [&]() -> std::shared_ptr<const CellIndex> {
+    std::optional<CellIndex> cells;
+    t.Run([&] {
+      const double side = CellIndex::SideForOccupancy(v, kKnnCellsSitesPerCell);
+      if (!(side > 0.0)) return;
+      // About 1 / kKnnCellsSitesPerCell cells per site (a little more
+      // where rounding adds a row or column); never the sparse form.
+      CellIndex::Limits limits;
+      limits.max_dense_cells = 4 * size_t{v.num_sites} + 64;
+      cells = CellIndex::Build(v, side, limits);
+    });
+    if (!cells) return nullptr;
+    if (options.plan == Plan::kAuto &&
+        cells->occupancy() > kKnnCellsMaxOccupancy) {
+      return nullptr;
+    }
+    return std::make_shared<const CellIndex>(*std::move(cells));
+  };
+  if (options.plan == Plan::kCells) return build();
+  const uint64_t batch = std::max<uint64_t>(num_queries, options.batch_queries);
+  if (batch * kCellsMinQueriesPerSite < v.num_sites &&
+      !t.HasCachedCellIndex(Triangulation::CellIndexUse::kNearest, 0.0)) {
+    return nullptr;
+  }
+  return t.CachedCellIndex(Triangulation::CellIndexUse::kNearest, 0.0, build);
 }
 
 absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
@@ -888,7 +1106,7 @@ absl::StatusOr<NeighborLists> AllNearestNeighbors(const Triangulation& t) {
 // then the device executor answers when the triangulation has one.
 absl::StatusOr<NeighborLists> KNearest(const Triangulation& t,
                                        absl::Span<const Vec2> queries, int k,
-                                       QueryLimits limits) {
+                                       QueryLimits limits, RowOptions options) {
   if (absl::Status s = CheckQueryPositions(queries); !s.ok()) return s;
   if (absl::Status s = CheckQueryK(k); !s.ok()) return s;
   if (t.device_executor() != nullptr) {
@@ -896,13 +1114,14 @@ absl::StatusOr<NeighborLists> KNearest(const Triangulation& t,
     q.positions = queries;
     return DeviceRows(t, q);
   }
-  return KNearestImpl(t, PositionQueries(queries), k, limits);
+  return KNearestImpl(t, PositionQueries(queries), k, limits, options);
 }
 
 absl::StatusOr<NeighborLists> KNearestOfPoints(const Triangulation& t,
                                                absl::Span<const uint32_t> ids,
                                                int k, bool exclude_self,
-                                               QueryLimits limits) {
+                                               QueryLimits limits,
+                                               RowOptions options) {
   if (absl::Status s = CheckQueryIds(t, ids); !s.ok()) return s;
   if (absl::Status s = CheckQueryK(k); !s.ok()) return s;
   if (t.device_executor() != nullptr) {
@@ -912,7 +1131,8 @@ absl::StatusOr<NeighborLists> KNearestOfPoints(const Triangulation& t,
     q.exclude_self = exclude_self;
     return DeviceRows(t, q);
   }
-  return KNearestImpl(t, PointQueries(t, ids, exclude_self), k, limits);
+  return KNearestImpl(t, PointQueries(t, ids, exclude_self), k, limits,
+                      options);
 }
 
 absl::StatusOr<NeighborLists> Nearest(const Triangulation& t,

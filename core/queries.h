@@ -34,6 +34,11 @@
 //    batch (core/cell_index.h): the cells that meet the disk's bounding
 //    square, scanned in contiguous memory, each site tested with the same
 //    exact predicate. Rows are identical either way.
+//  * k nearest, large batches on evenly spread sites: the sites of a disk
+//    from a cell index of about two sites per cell, the disk's radius
+//    grown until k sites lie in it for certain (starting from the last
+//    row's k-th distance), then sorted in the exact order; every point
+//    before the k-th is in the disk. Rows are identical to the graph's.
 #ifndef KINETRI_CORE_QUERIES_H_
 #define KINETRI_CORE_QUERIES_H_
 
@@ -53,17 +58,22 @@ namespace kinetri::core {
 // with no other point gets an empty row. Duplicates find each other at 0.
 absl::StatusOr<NeighborLists> AllNearestNeighbors(const Triangulation& t);
 
-// k nearest points of each position.
+// k nearest points of each position, closest first, with distances. Of
+// `options` only the plan and batch_queries apply: kAuto scans a cell
+// index for large batches on evenly spread sets, kGraph always expands
+// over the graph, kCells always scans cells (rows are identical).
 absl::StatusOr<NeighborLists> KNearest(const Triangulation& t,
                                        absl::Span<const Vec2> queries, int k,
-                                       QueryLimits limits = {});
+                                       QueryLimits limits = {},
+                                       RowOptions options = {});
 
 // k nearest points of each given point; exclude_self drops the point itself
-// (its coincident duplicates are still reported).
+// (its coincident duplicates are still reported). `options` as KNearest.
 absl::StatusOr<NeighborLists> KNearestOfPoints(const Triangulation& t,
                                                absl::Span<const uint32_t> ids,
                                                int k, bool exclude_self,
-                                               QueryLimits limits = {});
+                                               QueryLimits limits = {},
+                                               RowOptions options = {});
 
 // All points within distance r (inclusive) of each position, closest first
 // (unless options say otherwise), at most max_results per row (0 =

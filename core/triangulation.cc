@@ -148,10 +148,13 @@ struct Triangulation::AdjacencyCache {
   std::mutex mu;
   bool valid = false;
   SiteAdjacency rows;
-  // The radius queries' cell index of this step (CachedCellIndex).
-  bool cells_valid = false;
-  double cells_r = 0.0;
-  std::shared_ptr<const CellIndex> cells;
+  // The queries' cell indexes of this step (CachedCellIndex), one per use.
+  struct CellsSlot {
+    bool valid = false;
+    double key = 0.0;
+    std::shared_ptr<const CellIndex> cells;
+  };
+  CellsSlot cells[2];
   // Position queries' walk starts of this step (CachedHintGrid).
   std::shared_ptr<const HintGrid> hints;
 };
@@ -294,16 +297,17 @@ TriangulationView Triangulation::view() const {
 }
 
 std::shared_ptr<const CellIndex> Triangulation::CachedCellIndex(
-    double r,
+    CellIndexUse use, double key,
     const std::function<std::shared_ptr<const CellIndex>()>& make) const {
   std::lock_guard<std::mutex> lock(adjacency_->mu);
-  if (!adjacency_->cells_valid || adjacency_->cells_r != r) {
-    adjacency_->cells.reset();
-    adjacency_->cells = make();
-    adjacency_->cells_r = r;
-    adjacency_->cells_valid = true;
+  AdjacencyCache::CellsSlot& slot = adjacency_->cells[static_cast<int>(use)];
+  if (!slot.valid || slot.key != key) {
+    slot.cells.reset();
+    slot.cells = make();
+    slot.key = key;
+    slot.valid = true;
   }
-  return adjacency_->cells;
+  return slot.cells;
 }
 
 std::shared_ptr<const HintGrid> Triangulation::CachedHintGrid() const {
@@ -315,9 +319,11 @@ std::shared_ptr<const HintGrid> Triangulation::CachedHintGrid() const {
   return adjacency_->hints;
 }
 
-bool Triangulation::HasCachedCellIndex(double r) const {
+bool Triangulation::HasCachedCellIndex(CellIndexUse use, double key) const {
   std::lock_guard<std::mutex> lock(adjacency_->mu);
-  return adjacency_->cells_valid && adjacency_->cells_r == r;
+  const AdjacencyCache::CellsSlot& slot =
+      adjacency_->cells[static_cast<int>(use)];
+  return slot.valid && slot.key == key;
 }
 
 TriangulationView Triangulation::query_view() const {
@@ -1488,8 +1494,9 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
   {
     std::lock_guard<std::mutex> lock(adjacency_->mu);
     adjacency_->valid = false;
-    adjacency_->cells_valid = false;
-    adjacency_->cells.reset();
+    for (AdjacencyCache::CellsSlot& slot : adjacency_->cells) {
+      slot = AdjacencyCache::CellsSlot{};
+    }
     adjacency_->hints.reset();
   }
 

@@ -226,16 +226,19 @@ class Triangulation {
   // built on the first call after a change (in parallel, inside the arena)
   // and reused until the next step; concurrent callers wait for one build.
   TriangulationView query_view() const;
-  // The cell index of side r over this step's sites for radius queries
-  // (core/cell_index.h), made by `make` on the first call of a step for
-  // this r and kept for later batches of the same step and radius (one
-  // radius at a time; `make` may return null: the graph is used, and that
-  // decision is kept too). Concurrent callers wait for one build.
+  // What a cached cell index is for, each with its own slot.
+  enum class CellIndexUse { kRadius = 0, kNearest = 1 };
+  // A cell index over this step's sites (core/cell_index.h) for one use:
+  // radius queries (key: the radius, which is the cell side) or k-nearest
+  // queries (key: k). Made by `make` on the first call of a step for this
+  // use and key, and kept for later batches of the same step and key (one
+  // key per use at a time; `make` may return null: the graph is used, and
+  // that decision is kept too). Concurrent callers wait for one build.
   std::shared_ptr<const CellIndex> CachedCellIndex(
-      double r,
+      CellIndexUse use, double key,
       const std::function<std::shared_ptr<const CellIndex>()>& make) const;
-  // Whether CachedCellIndex holds a decision for r in this step.
-  bool HasCachedCellIndex(double r) const;
+  // Whether CachedCellIndex holds a decision for (use, key) in this step.
+  bool HasCachedCellIndex(CellIndexUse use, double key) const;
   // The hint grid that starts position queries' walks (core/hint_grid.h),
   // built on the first call of a step and kept until the next step.
   std::shared_ptr<const HintGrid> CachedHintGrid() const;

@@ -76,6 +76,21 @@ void CheckAllQueries(const std::vector<Vec2>& pts, uint64_t seed) {
         rank.resize(std::min<size_t>(rank.size(), k));
         ASSERT_EQ(Row(*rp, i), rank) << "kNN of point " << ids[i];
       }
+      // Both ways of finding the k nearest (best first over the graph, and
+      // growing disks over a cell index) give these rows exactly.
+      for (auto plan : {RowOptions::Plan::kGraph, RowOptions::Plan::kCells}) {
+        RowOptions forced;
+        forced.plan = plan;
+        auto alt = KNearest(*t, qs, k, {}, forced);
+        auto alt_p = KNearestOfPoints(*t, ids, k, exclude, {}, forced);
+        ASSERT_TRUE(alt.ok() && alt_p.ok());
+        for (auto [got, ref] : {std::pair{&*alt, &*r}, {&*alt_p, &*rp}}) {
+          EXPECT_EQ(got->offsets, ref->offsets) << "plan k=" << k;
+          EXPECT_EQ(got->ids, ref->ids) << "plan k=" << k;
+          EXPECT_EQ(got->distances, ref->distances) << "plan k=" << k;
+          EXPECT_EQ(got->truncated, ref->truncated) << "plan k=" << k;
+        }
+      }
     }
   }
   // Fixed radius, including radii that hit points exactly.
@@ -177,6 +192,82 @@ void CheckAllQueries(const std::vector<Vec2>& pts, uint64_t seed) {
 }
 
 TEST(Queries, Uniform) { CheckAllQueries(testing::UniformPoints(2000, 1), 2); }
+
+// The k nearest of every point of a large set, by the planner's choice and
+// by each plan, against brute force for a sample: the planner scans a cell
+// index on evenly spread sets (and keeps it for the step) and walks the
+// graph on clustered ones (and keeps that decision).
+TEST(Queries, KNearestOfEveryPointByEachPlan) {
+  for (bool clustered : {false, true}) {
+    const std::vector<Vec2> pts = clustered
+                                      ? testing::ClusteredPoints(30000, 31)
+                                      : testing::UniformPoints(30000, 32);
+    auto t = Make(pts);
+    ASSERT_TRUE(t.ok()) << t.status();
+    std::vector<uint32_t> all(pts.size());
+    std::iota(all.begin(), all.end(), 0);
+    for (int k : {2, 8, 33}) {
+      auto ref = KNearestOfPoints(*t, all, k, true);
+      ASSERT_TRUE(ref.ok()) << ref.status();
+      for (uint32_t i = 0; i < pts.size(); i += 499) {
+        auto rank = BruteRank(pts, pts[i], i);
+        rank.resize(k);
+        ASSERT_EQ(Row(*ref, i), rank) << "k=" << k << " point " << i;
+      }
+      for (auto plan : {RowOptions::Plan::kGraph, RowOptions::Plan::kCells}) {
+        RowOptions forced;
+        forced.plan = plan;
+        auto got = KNearestOfPoints(*t, all, k, true, {}, forced);
+        ASSERT_TRUE(got.ok());
+        EXPECT_EQ(got->ids, ref->ids) << "k=" << k;
+        EXPECT_EQ(got->distances, ref->distances) << "k=" << k;
+      }
+    }
+    if (testing::ExecutorOptions().executor == Executor::kDevice) continue;
+    // The planner's decision of this step: an index for the even set, the
+    // graph for the clustered one (made by the batches above, not here).
+    auto kept = t->CachedCellIndex(Triangulation::CellIndexUse::kNearest, 0.0,
+                                   []() -> std::shared_ptr<const CellIndex> {
+                                     ADD_FAILURE() << "not cached";
+                                     return nullptr;
+                                   });
+    EXPECT_EQ(kept != nullptr, !clustered);
+  }
+}
+
+// Growing disks over a cell index where the density jumps (a dense patch
+// in an even set: a row's first radius, from the last row's, holds
+// thousands of sites or none), for queries inside, at the edge of and far
+// outside the sites' box.
+TEST(Queries, KNearestFromCellsWhereTheDensityJumps) {
+  std::vector<Vec2> pts = testing::UniformPoints(6000, 41);
+  std::mt19937_64 rng(42);
+  std::uniform_real_distribution<double> u(0.0, 1e-4);
+  for (int i = 0; i < 6000; ++i) pts.push_back({0.5 + u(rng), 0.5 + u(rng)});
+  auto t = Make(pts);
+  ASSERT_TRUE(t.ok()) << t.status();
+  std::vector<Vec2> qs = QueryPoints(pts, 400, 43);
+  for (double d : {-10.0, 1.0, 1e6}) qs.push_back({d, 0.5});
+  for (int i = 0; i < 50; ++i) qs.push_back({0.5 + u(rng), 0.5 + u(rng)});
+  std::vector<uint32_t> ids(pts.size());
+  std::iota(ids.begin(), ids.end(), 0);
+  RowOptions cells;
+  cells.plan = RowOptions::Plan::kCells;
+  for (int k : {1, 5, 64}) {
+    auto r = KNearest(*t, qs, k, {}, cells);
+    ASSERT_TRUE(r.ok());
+    for (size_t i = 0; i < qs.size(); ++i) {
+      auto rank = BruteRank(pts, qs[i], kNoVertex);
+      rank.resize(k);
+      ASSERT_EQ(Row(*r, i), rank) << "k=" << k << " query " << i;
+    }
+    auto rp = KNearestOfPoints(*t, ids, k, true, {}, cells);
+    auto graph = KNearestOfPoints(*t, ids, k, true);
+    ASSERT_TRUE(rp.ok() && graph.ok());
+    EXPECT_EQ(rp->ids, graph->ids) << "k=" << k;
+    EXPECT_EQ(rp->distances, graph->distances) << "k=" << k;
+  }
+}
 TEST(Queries, Clustered) {
   CheckAllQueries(testing::ClusteredPoints(2000, 3), 4);
 }
