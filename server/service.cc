@@ -975,9 +975,13 @@ grpc::Status KinetriServiceImpl::RunQuery(
       } else if (all_nearest) {
         result = core::AllNearestNeighbors(t);
       } else {
-        result = by_id ? core::KNearestOfPoints(t, id_block, k,
-                                                req->exclude_self(), limits)
-                       : core::KNearest(t, pos_block, k, limits);
+        // The whole batch plans (a cell index for many rows, kept for
+        // the step), not each block.
+        core::RowOptions rows;
+        rows.batch_queries = total_rows;
+        result = by_id ? core::KNearestOfPoints(
+                             t, id_block, k, req->exclude_self(), limits, rows)
+                       : core::KNearest(t, pos_block, k, limits, rows);
       }
       compute_seconds +=
           std::chrono::duration<double>(Clock::now() - start).count();
