@@ -158,25 +158,64 @@ absl::Status CheckRadius(double r) {
   return absl::OkStatus();
 }
 
+// A batch of queries in request order or, when `order` is set, already
+// in processing order: queries[j] is the request order[j] and has its
+// start site.
+struct QueryBatch {
+  std::vector<Query> queries;
+  std::vector<uint32_t> order;
+  size_t size() const { return queries.size(); }
+};
+
 // The queries of positions and of points, their arguments already checked
 // (CheckQueryPositions, CheckQueryIds).
-std::vector<Query> PositionQueries(absl::Span<const Vec2> qs) {
-  std::vector<Query> out(qs.size());
-  for (size_t i = 0; i < qs.size(); ++i) out[i].q = qs[i];
+QueryBatch PositionQueries(absl::Span<const Vec2> qs) {
+  QueryBatch out;
+  out.queries.resize(qs.size());
+  for (size_t i = 0; i < qs.size(); ++i) out.queries[i].q = qs[i];
   return out;
 }
 
-std::vector<Query> PointQueries(const Triangulation& t,
-                                absl::Span<const uint32_t> ids,
-                                bool exclude_self) {
+QueryBatch PointQueries(const Triangulation& t, absl::Span<const uint32_t> ids,
+                        bool exclude_self) {
   const TriangulationView v = t.view();
-  std::vector<Query> out(ids.size());
+  QueryBatch out;
+  out.queries.resize(ids.size());
+  // Every point, by id (the all-points query): the queries are made in
+  // internal order, which is the processing order (internal ids follow a
+  // Hilbert curve), reading the points' arrays in sequence; the request
+  // of internal id j is its external id.
+  bool every_point = ids.size() == v.num_points && !ids.empty();
+  if (every_point) {
+    std::atomic<bool> identity{true};
+    t.Run([&] {
+      ParallelFor(0, ids.size(), [&](size_t i) {
+        if (ids[i] != i) identity.store(false, std::memory_order_relaxed);
+      });
+    });
+    every_point = identity.load();
+  }
+  if (every_point) {
+    out.order.resize(ids.size());
+    t.Run([&] {
+      ParallelFor(0, ids.size(), [&](size_t j) {
+        const uint32_t ext = v.ext_of_int[j];
+        Query& q = out.queries[j];
+        q.q = v.pos[j];
+        q.self_ext = exclude_self ? ext : kNoVertex;
+        q.start_site = v.rep[j];
+        out.order[j] = ext;
+      });
+    });
+    return out;
+  }
   t.Run([&] {
     ParallelFor(0, ids.size(), [&](size_t i) {
       const uint32_t in = v.int_of_ext[ids[i]];
-      out[i].q = v.pos[in];
-      out[i].self_ext = exclude_self ? ids[i] : kNoVertex;
-      out[i].start_site = v.rep[in];
+      Query& q = out.queries[i];
+      q.q = v.pos[in];
+      q.self_ext = exclude_self ? ids[i] : kNoVertex;
+      q.start_site = v.rep[in];
     });
   });
   return out;
@@ -239,10 +278,11 @@ void HugePages(std::vector<T>& v, size_t n) {
 // per-block buffers, admitted as they grow, then into the answer.
 template <typename RowFn>
 absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
-                                      const std::vector<Query>& queries,
+                                      const QueryBatch& batch,
                                       QueryLimits limits, bool distances,
                                       RowFn&& row_fn, size_t width = 0,
                                       bool find_root = true) {
+  const std::vector<Query>& queries = batch.queries;
   const size_t nq = queries.size();
   if (t.num_sites() == 0) width = 0;
   NeighborLists fixed;
@@ -296,31 +336,42 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
   if (t.num_sites() > 0) {
     const TriangulationView v = t.query_view();
     t.Run([&] {
-      std::shared_ptr<const HintGrid> grid;
-      bool need_hints = false;
-      for (const Query& q : queries) need_hints |= q.start_site == kNoVertex;
-      // Built once per step (the server asks a batch in blocks).
-      if (need_hints) grid = t.CachedHintGrid();
-      const HintGridView hints = grid ? grid->view() : HintGridView{};
-      std::vector<uint32_t> start(nq);
-      ParallelFor(0, nq, [&](size_t i) {
-        const Query& q = queries[i];
-        start[i] = q.start_site != kNoVertex ? q.start_site : hints.Hint(q.q);
-      });
       // Queries run in the order of their start sites (internal ids follow
       // a Hilbert curve), so that neighbouring queries touch the same
       // memory; rows still come out in request order. The queries and
       // their per-row bookkeeping are gathered into that order first, so
       // the searches read and write them sequentially (a gather in a tight
       // loop overlaps its cache misses; inside the search loop each one
-      // would stall the search).
-      const std::vector<uint32_t> order = OrderByKey(start, v.num_points);
-      std::vector<Query> sorted(nq);
+      // would stall the search). A batch may come in that order already.
+      std::vector<uint32_t> order_made;
+      std::vector<Query> sorted_made;
       std::vector<uint32_t> sorted_start(nq);
-      ParallelFor(0, nq, [&](size_t j) {
-        sorted[j] = queries[order[j]];
-        sorted_start[j] = start[order[j]];
-      });
+      if (!batch.order.empty()) {
+        ParallelFor(0, nq,
+                    [&](size_t j) { sorted_start[j] = queries[j].start_site; });
+      } else {
+        std::shared_ptr<const HintGrid> grid;
+        bool need_hints = false;
+        for (const Query& q : queries) need_hints |= q.start_site == kNoVertex;
+        // Built once per step (the server asks a batch in blocks).
+        if (need_hints) grid = t.CachedHintGrid();
+        const HintGridView hints = grid ? grid->view() : HintGridView{};
+        std::vector<uint32_t> start(nq);
+        ParallelFor(0, nq, [&](size_t i) {
+          const Query& q = queries[i];
+          start[i] = q.start_site != kNoVertex ? q.start_site : hints.Hint(q.q);
+        });
+        order_made = OrderByKey(start, v.num_points);
+        sorted_made.resize(nq);
+        ParallelFor(0, nq, [&](size_t j) {
+          sorted_made[j] = queries[order_made[j]];
+          sorted_start[j] = start[order_made[j]];
+        });
+      }
+      const std::vector<uint32_t>& order =
+          batch.order.empty() ? order_made : batch.order;
+      const std::vector<Query>& sorted =
+          batch.order.empty() ? sorted_made : queries;
       std::vector<uint64_t> sorted_size(rows_kept, 0);
       std::vector<uint8_t> sorted_truncated(rows_kept, 0);
       ParallelFor(
@@ -444,7 +495,7 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
   if (short_row.load()) {
     // The answer was admitted whole already.
     limits.admit = nullptr;
-    return RunRows(t, queries, limits, distances, row_fn, 0);
+    return RunRows(t, batch, limits, distances, row_fn, 0, find_root);
   }
   if (width > 0) {
     fixed.offsets.resize(nq + 1);
@@ -649,8 +700,8 @@ std::shared_ptr<const CellIndex> KnnCells(const Triangulation& t, int k,
                                           RowOptions options);
 
 absl::StatusOr<NeighborLists> KNearestImpl(const Triangulation& t,
-                                           const std::vector<Query>& queries,
-                                           int k, QueryLimits limits,
+                                           const QueryBatch& queries, int k,
+                                           QueryLimits limits,
                                            RowOptions options) {
   const size_t want = static_cast<size_t>(k);
   const std::shared_ptr<const CellIndex> index =
@@ -787,8 +838,8 @@ std::shared_ptr<const CellIndex> KnnCells(const Triangulation& t, int k,
 }
 
 absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
-                                         const std::vector<Query>& queries,
-                                         double r, uint32_t max_results,
+                                         const QueryBatch& queries, double r,
+                                         uint32_t max_results,
                                          QueryLimits limits,
                                          RowOptions options) {
   const std::shared_ptr<const CellIndex> index =
