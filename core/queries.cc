@@ -509,8 +509,12 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
   for (size_t i = 0; i < nq; ++i) {
     out.offsets[i + 1] = out.offsets[i] + row_size[i];
   }
+  HugePages(out.ids, out.offsets[nq]);
   out.ids.resize(out.offsets[nq]);
-  if (distances) out.distances.resize(out.offsets[nq]);
+  if (distances) {
+    HugePages(out.distances, out.offsets[nq]);
+    out.distances.resize(out.offsets[nq]);
+  }
   // Rows lie in their blocks in processing order: each one is a cache miss,
   // fetched ahead.
   constexpr size_t kAhead = 16;
