@@ -6,9 +6,6 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
-#if defined(__linux__)
-#include <sys/mman.h>
-#endif
 #include <memory>
 #include <mutex>
 #include <optional>
@@ -250,24 +247,6 @@ inline void CopyIds(const uint32_t* from, uint64_t len, uint32_t* to) {
   }
 }
 
-// Reserves room for n elements in v and, on Linux, asks for huge pages
-// for it: an answer of many rows (a 1M-point 8-NN writes 96 MB) page-faults
-// once per 2 MB instead of once per 4 KB as it is first written.
-template <typename T>
-void HugePages(std::vector<T>& v, size_t n) {
-  v.reserve(n);
-#if defined(__linux__) && defined(MADV_HUGEPAGE)
-  constexpr uintptr_t kHuge = uintptr_t{1} << 21;
-  const uintptr_t begin = reinterpret_cast<uintptr_t>(v.data());
-  const uintptr_t end = begin + n * sizeof(T);
-  const uintptr_t first = (begin + kHuge - 1) & ~(kHuge - 1);
-  const uintptr_t last = end & ~(kHuge - 1);
-  if (last > first) {
-    madvise(reinterpret_cast<void*>(first), last - first, MADV_HUGEPAGE);
-  }
-#endif
-}
-
 // Rows of every query by row_fn, which gets the query's nearest site as
 // `root` (find_root false: the site its walk would start from, for a row
 // that may not need it). `width` > 0 promises that every complete
@@ -298,12 +277,8 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
         return s;
       }
     }
-    HugePages(fixed.ids, all);
     fixed.ids.resize(all);
-    if (distances) {
-      HugePages(fixed.distances, all);
-      fixed.distances.resize(all);
-    }
+    if (distances) fixed.distances.resize(all);
   }
   // Set when a row of a fixed-width answer came out shorter (never
   // expected): the query is then answered the general way.
@@ -509,12 +484,8 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
   for (size_t i = 0; i < nq; ++i) {
     out.offsets[i + 1] = out.offsets[i] + row_size[i];
   }
-  HugePages(out.ids, out.offsets[nq]);
   out.ids.resize(out.offsets[nq]);
-  if (distances) {
-    HugePages(out.distances, out.offsets[nq]);
-    out.distances.resize(out.offsets[nq]);
-  }
+  if (distances) out.distances.resize(out.offsets[nq]);
   // Rows lie in their blocks in processing order: each one is a cache miss,
   // fetched ahead.
   constexpr size_t kAhead = 16;
