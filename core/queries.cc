@@ -502,6 +502,40 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
   return out;
 }
 
+// Sorts a[0..n) (squared distance from q in double, site or slot) closest
+// first in the exact order: by the squared distances (by insertion when
+// short: rows of a few sites), then an insertion pass in the exact order,
+// which moves only near-ties. pos(x) is the position of site or slot x.
+template <typename PosOf>
+void SortClosestFirst(const Vec2& q, std::pair<double, uint32_t>* a, size_t n,
+                      PosOf&& pos) {
+  auto by_d2 = [](const std::pair<double, uint32_t>& x,
+                  const std::pair<double, uint32_t>& y) {
+    return x.first < y.first;
+  };
+  if (n <= 32) {
+    for (size_t i = 1; i < n; ++i) {
+      const auto x = a[i];
+      size_t j = i;
+      for (; j > 0 && by_d2(x, a[j - 1]); --j) a[j] = a[j - 1];
+      a[j] = x;
+    }
+  } else {
+    std::sort(a, a + n, by_d2);
+  }
+  for (size_t i = 1; i < n; ++i) {
+    const auto x = a[i];
+    size_t j = i;
+    while (j > 0 &&
+           CompareCloserCached(q, pos(x.second), x.first, pos(a[j - 1].second),
+                               a[j - 1].first) < 0) {
+      a[j] = a[j - 1];
+      --j;
+    }
+    a[j] = x;
+  }
+}
+
 // The first `want` points of q's order (fewer if the set is smaller), by
 // best-first expansion from root over a bounded candidate list kept in the
 // exact order (squared distances in double decide clear cases). A candidate
@@ -623,33 +657,8 @@ bool KnnCellsRow(const CellIndex& cells, const Query& q, size_t want, double r0,
     }
     r *= kRetryGrowth;
   }
-  // Closest first: by the squared distances in double, then an insertion
-  // pass in the exact order (it moves only near-ties).
-  auto by_d2 = [](const std::pair<double, uint32_t>& a,
-                  const std::pair<double, uint32_t>& b) {
-    return a.first < b.first;
-  };
-  if (num_kept <= 32) {
-    for (size_t i = 1; i < num_kept; ++i) {
-      const auto x = kept[i];
-      size_t j = i;
-      for (; j > 0 && by_d2(x, kept[j - 1]); --j) kept[j] = kept[j - 1];
-      kept[j] = x;
-    }
-  } else {
-    std::sort(kept, kept + num_kept, by_d2);
-  }
-  for (size_t i = 1; i < num_kept; ++i) {
-    const auto x = kept[i];
-    size_t j = i;
-    while (j > 0 && CompareCloserCached(q.q, pos[x.second], x.first,
-                                        pos[kept[j - 1].second],
-                                        kept[j - 1].first) < 0) {
-      kept[j] = kept[j - 1];
-      --j;
-    }
-    kept[j] = x;
-  }
+  SortClosestFirst(q.q, kept, num_kept,
+                   [pos](uint32_t c) -> const Vec2& { return pos[c]; });
   out.resize(want);
   for (size_t i = 0; i < want; ++i) {
     out[i] = {exts[kept[i].second], std::sqrt(kept[i].first)};
@@ -1017,18 +1026,8 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
         // Closest first: sort on the double squared distances,
         // then an insertion pass with the exact order (linear
         // unless rounding misordered near-ties).
-        std::sort(found.begin(), found.end());
-        for (size_t i = 1; i < found.size(); ++i) {
-          const auto x = found[i];
-          size_t j = i;
-          while (j > 0 && CompareCloserCached(q.q, v.pos[x.second], x.first,
-                                              v.pos[found[j - 1].second],
-                                              found[j - 1].first) < 0) {
-            found[j] = found[j - 1];
-            --j;
-          }
-          found[j] = x;
-        }
+        SortClosestFirst(q.q, found.data(), found.size(),
+                         [&v](uint32_t w) -> const Vec2& { return v.pos[w]; });
         for (const auto& f : found) {
           EmitSite(v, f.second, q.q, q.self_ext, out, options.distances);
         }
