@@ -278,7 +278,9 @@ double SecondsSince(std::chrono::steady_clock::time_point t0) {
 
 // The queries that occupy every multiprocessor of the GPU once (its
 // multiprocessors times Thrust's 512 elements per CUDA block;
-// core/device/block_sizer.h); 0 on CPU threads.
+// core/device/block_sizer.h), or times KINETRI_DEVICE_FILL_PER_SM queries
+// where that is set (read once per process: 1024 lets two CUDA blocks share
+// a multiprocessor where the registers allow); 0 on CPU threads.
 size_t DeviceFill() {
 #if THRUST_DEVICE_SYSTEM == THRUST_DEVICE_SYSTEM_CUDA
   static const size_t fill = [] {
@@ -288,7 +290,12 @@ size_t DeviceFill() {
             cudaSuccess) {
       return size_t{0};
     }
-    return static_cast<size_t>(std::max(sms, 0)) * 512;
+    size_t per_sm = 512;
+    if (const char* e = std::getenv("KINETRI_DEVICE_FILL_PER_SM")) {
+      const long v = std::strtol(e, nullptr, 10);
+      if (v >= 32 && v <= (1 << 16)) per_sm = static_cast<size_t>(v);
+    }
+    return static_cast<size_t>(std::max(sms, 0)) * per_sm;
   }();
   return fill;
 #else
@@ -388,6 +395,14 @@ class QueryEngine {
                  static_cast<unsigned long long>(queries_.load()),
                  static_cast<unsigned long long>(calls_.load()),
                  static_cast<double>(nanos_.load()) * 1e-9);
+    std::fprintf(stderr,
+                 "[device profile] query rows by phase: prepare %.3f s, "
+                 "search and count %.3f s, radius fill %.3f s, download and "
+                 "append %.3f s\n",
+                 static_cast<double>(phase_nanos_[kPrepare].load()) * 1e-9,
+                 static_cast<double>(phase_nanos_[kSearch].load()) * 1e-9,
+                 static_cast<double>(phase_nanos_[kFill].load()) * 1e-9,
+                 static_cast<double>(phase_nanos_[kDownload].load()) * 1e-9);
   }
 
   absl::StatusOr<NeighborLists> Run(const TriangulationView& host,
@@ -634,7 +649,9 @@ class QueryEngine {
       const uint32_t nb =
           static_cast<uint32_t>(std::min(blocks.size(), nq - begin));
       blocks_.fetch_add(1, std::memory_order_relaxed);
+      PhaseClock phase(this);
       Prepare(q, begin, nb, w);
+      phase.To(kSearch);
       const uint64_t remaining = limit ? limit - total : UINT64_MAX;
       uint64_t rows_total;
       uint32_t rows = nb;  // the rows of the block appended below
@@ -662,10 +679,12 @@ class QueryEngine {
         if (absl::Status s = q.limits.admit(granted); !s.ok()) return s;
       }
       if (!knn) {
+        phase.To(kFill);
         RadiusRows(q, rows, rows_total, w);
         // Rows a raised stop word ended are incomplete.
         if (watcher.stopped()) return cancel->Check("query");
       }
+      phase.To(kDownload);
       // Append the block's rows.
       for (uint32_t i = 0; i < rows; ++i) {
         out->offsets[begin + i + 1] = total + w.h_offsets[i + 1];
@@ -808,10 +827,43 @@ class QueryEngine {
     return n;
   }
 
+  // The phases of a block of rows (KINETRI_DEVICE_PROFILE prints the time
+  // spent in each): its queries prepared, its rows searched (k-NN) or
+  // counted (radius) and scanned, its radius rows filled, and its rows
+  // downloaded and appended to the answer.
+  enum Phase { kPrepare, kSearch, kFill, kDownload, kPhases };
+  // Adds the time since the previous To() (or since it was made) to the
+  // phase it was in; the last one ends with it. Costs nothing while the
+  // profile is off.
+  class PhaseClock {
+   public:
+    explicit PhaseClock(QueryEngine* engine) : engine_(engine) {
+      if (DeviceProfileLevel() != 0) since_ = std::chrono::steady_clock::now();
+    }
+    ~PhaseClock() { To(kPhases); }
+    void To(Phase next) {
+      if (DeviceProfileLevel() == 0) return;
+      const auto now = std::chrono::steady_clock::now();
+      engine_->phase_nanos_[phase_].fetch_add(
+          static_cast<uint64_t>(
+              std::chrono::duration_cast<std::chrono::nanoseconds>(now - since_)
+                  .count()),
+          std::memory_order_relaxed);
+      phase_ = next;
+      since_ = now;
+    }
+
+   private:
+    QueryEngine* engine_;
+    Phase phase_ = kPrepare;
+    std::chrono::steady_clock::time_point since_;
+  };
+
   mutable std::mutex mu_;
   ScratchPool pool_;  // Thrust's temporaries of every call
   // Over the engine's life (KINETRI_DEVICE_PROFILE prints them).
   std::atomic<uint64_t> calls_{0}, runs_{0}, blocks_{0}, queries_{0}, nanos_{0};
+  std::atomic<uint64_t> phase_nanos_[kPhases] = {};
   bool valid_ = false;
   uint64_t generation_ = 0;
   TriangulationView view_;

@@ -77,7 +77,10 @@ void CheckAllQueries(const std::vector<Vec2>& pts, uint64_t seed) {
         ASSERT_EQ(Row(*rp, i), rank) << "kNN of point " << ids[i];
       }
       // Both ways of finding the k nearest (best first over the graph, and
-      // growing disks over a cell index) give these rows exactly.
+      // growing disks over a cell index) give these rows exactly. The cells
+      // serve k up to 64 (beyond, both plans are the graph's rows: not run
+      // twice, since a k of n + 3 is slow on a GPU thread).
+      if (k > 64) continue;
       for (auto plan : {RowOptions::Plan::kGraph, RowOptions::Plan::kCells}) {
         RowOptions forced;
         forced.plan = plan;
