@@ -255,12 +255,18 @@ inline void CopyIds(const uint32_t* from, uint64_t len, uint32_t* to) {
 // is checked against max_total_results and admitted in one call up front,
 // and rows are written straight into the answer. Otherwise rows go to
 // per-block buffers, admitted as they grow, then into the answer.
+//
+// `build_rows` says whether the step's neighbour rows are built for the
+// batch (Triangulation::query_view; NeedRows below); without them, rows
+// that walk the graph read each site's neighbours off the mesh (the rows
+// are still used where an earlier batch of the step built them).
 template <typename RowFn>
 absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
                                       const QueryBatch& batch,
                                       QueryLimits limits, bool distances,
                                       RowFn&& row_fn, size_t width = 0,
-                                      bool find_root = true) {
+                                      bool find_root = true,
+                                      bool build_rows = true) {
   const std::vector<Query>& queries = batch.queries;
   const size_t nq = queries.size();
   if (t.num_sites() == 0) width = 0;
@@ -309,7 +315,8 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
   absl::Status refused;
   const bool counted = width == 0 && (limits.max_total_results || limits.admit);
   if (t.num_sites() > 0) {
-    const TriangulationView v = t.query_view();
+    const TriangulationView v =
+        build_rows ? t.query_view() : t.view_with_cached_rows();
     t.Run([&] {
       // Queries run in the order of their start sites (internal ids follow
       // a Hilbert curve), so that neighbouring queries touch the same
@@ -470,7 +477,8 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
   if (short_row.load()) {
     // The answer was admitted whole already.
     limits.admit = nullptr;
-    return RunRows(t, batch, limits, distances, row_fn, 0, find_root);
+    return RunRows(t, batch, limits, distances, row_fn, 0, find_root,
+                   build_rows);
   }
   if (width > 0) {
     fixed.offsets.resize(nq + 1);
@@ -566,12 +574,11 @@ int KnnRow(const TriangulationView& v, const Query& q, uint32_t root,
     EmitSite(v, s, q.q, q.self_ext, out, true, want - out.size());
     if (out.size() >= want) break;
     const size_t cap = want - out.size() + 1;
-    for (const uint32_t* it = v.RowBegin(s); it != v.RowEnd(s); ++it) {
-      const uint32_t w = *it;
-      if (!marks.Visit(w)) continue;
+    auto consider = [&](uint32_t w) __attribute__((always_inline)) {
+      if (!marks.Visit(w)) return;
       const Entry e{SquaredDistance(q.q, v.pos[w]), w};
       const size_t live = cand.size() - head;
-      if (live >= cap && !before(e, cand.back())) continue;
+      if (live >= cap && !before(e, cand.back())) return;
       size_t j = cand.size();
       cand.push_back(e);
       while (j > head && before(e, cand[j - 1])) {
@@ -580,6 +587,15 @@ int KnnRow(const TriangulationView& v, const Query& q, uint32_t root,
       }
       cand[j] = e;
       if (cand.size() - head > cap) cand.pop_back();
+    };
+    // The step's rows where they were built (a loop the compiler keeps
+    // tight), else the fan of s in the mesh.
+    if (v.adj_offsets != nullptr) {
+      for (const uint32_t* it = v.RowBegin(s); it != v.RowEnd(s); ++it) {
+        consider(*it);
+      }
+    } else {
+      v.ForEachNeighbor(s, consider);
     }
   }
   if (out.size() > want) out.resize(want);
@@ -683,6 +699,21 @@ std::shared_ptr<const CellIndex> KnnCells(const Triangulation& t, int k,
                                           size_t num_queries,
                                           RowOptions options);
 
+// Whether a batch builds the step's neighbour rows (RunRows' build_rows).
+// Sites of several points need them (their members are listed there).
+// Otherwise rows pay for a batch that walks the graph (no cell index) with
+// at least one query per kRowsMinQueriesPerSite sites: building them is a
+// pass over every site's fan (about 40 ms at 1M points on 2 cores), which
+// a smaller batch, or one answered from cells, would not earn back.
+constexpr size_t kRowsMinQueriesPerSite = 8;
+bool NeedRows(const Triangulation& t, bool cells, size_t num_queries,
+              RowOptions options) {
+  if (t.num_sites() < t.size()) return true;
+  if (cells) return false;
+  const uint64_t batch = std::max<uint64_t>(num_queries, options.batch_queries);
+  return batch * kRowsMinQueriesPerSite >= t.num_sites();
+}
+
 absl::StatusOr<NeighborLists> KNearestImpl(const Triangulation& t,
                                            const QueryBatch& queries, int k,
                                            QueryLimits limits,
@@ -712,7 +743,8 @@ absl::StatusOr<NeighborLists> KNearestImpl(const Triangulation& t,
         return KnnRow(v, q, root, want, budget, out);
       },
       // Every row holds k points when the set has more than k.
-      t.size() > want ? want : 0, /*find_root=*/cells == nullptr);
+      t.size() > want ? want : 0, /*find_root=*/cells == nullptr,
+      NeedRows(t, cells != nullptr, queries.size(), options));
 }
 
 // Disks expected to hold at least this many sites are scanned in a cell
@@ -1006,12 +1038,11 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
               return kRowCancelled;
             }
             const uint32_t u = found[head].second;
-            for (const uint32_t* it = v.RowBegin(u); it != v.RowEnd(u); ++it) {
-              const uint32_t w = *it;
-              if (!marks.Visit(w)) continue;
+            v.ForEachNeighbor(u, [&](uint32_t w) {
+              if (!marks.Visit(w)) return;
               const double dw = SquaredDistance(q.q, v.pos[w]);
               if (in_disk(v.pos[w], dw)) found.push_back({dw, w});
-            }
+            });
           }
         }
         if (!options.closest_first) {
@@ -1036,7 +1067,9 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
           return kRowTruncated;
         }
         return kRowComplete;
-      });
+      },
+      /*width=*/0, /*find_root=*/true,
+      NeedRows(t, cells != nullptr, queries.size(), options));
 }
 
 // The rows of `q` from t's device executor (t.device_executor() is set;

@@ -271,6 +271,69 @@ TEST(Queries, KNearestFromCellsWhereTheDensityJumps) {
     EXPECT_EQ(rp->distances, graph->distances) << "k=" << k;
   }
 }
+// A batch too small to earn the step's neighbour rows (and one answered
+// from cells) reads the sites' neighbours off the mesh: the same rows as
+// after a large batch built them, and the rows are built only then (sites
+// of several points always build them: their members are listed there).
+TEST(Queries, SmallGraphBatchesReadTheMesh) {
+  const bool host = testing::ExecutorOptions().executor != Executor::kDevice;
+  for (bool duplicates : {false, true}) {
+    std::vector<Vec2> pts = testing::UniformPoints(20000, 51);
+    if (duplicates) {
+      for (int i = 0; i < 500; ++i) pts.push_back(pts[7 * i]);
+    }
+    auto t = Make(pts);
+    ASSERT_TRUE(t.ok()) << t.status();
+    const std::vector<Vec2> qs = QueryPoints(pts, 300, 52);
+    std::vector<uint32_t> ids(300);
+    std::iota(ids.begin(), ids.end(), 100);
+    const double r = 3.0 / std::sqrt(double(pts.size()));
+    RowOptions graph;
+    graph.plan = RowOptions::Plan::kGraph;
+    RowOptions cells;
+    cells.plan = RowOptions::Plan::kCells;
+    RowOptions cut_sorted = graph;
+    cut_sorted.closest_first = true;
+    // Every small batch of the step, in order.
+    auto small = [&] {
+      std::vector<absl::StatusOr<NeighborLists>> out;
+      out.push_back(Nearest(*t, qs));
+      out.push_back(KNearest(*t, qs, 8, {}, graph));
+      out.push_back(KNearest(*t, qs, 8, {}, cells));
+      out.push_back(KNearestOfPoints(*t, ids, 5, true, {}, graph));
+      out.push_back(WithinRadius(*t, qs, r, 0, {}, graph));
+      out.push_back(WithinRadius(*t, qs, r, 4, {}, cut_sorted));
+      out.push_back(WithinRadiusOfPoints(*t, ids, r, true, 0, {}, graph));
+      return out;
+    };
+    const auto before = small();
+    if (host) {
+      EXPECT_EQ(t->view_with_cached_rows().adj_offsets != nullptr, duplicates)
+          << "rows built by small batches";
+    }
+    for (size_t i = 0; i < qs.size(); ++i) {
+      auto rank = BruteRank(pts, qs[i], kNoVertex);
+      rank.resize(8);
+      ASSERT_TRUE(before[1].ok() && before[2].ok());
+      ASSERT_EQ(Row(*before[1], i), rank) << "query " << i;
+      ASSERT_EQ(Row(*before[2], i), rank) << "query " << i;
+    }
+    // A batch of every point builds them; the small ones give the same.
+    std::vector<uint32_t> all(pts.size());
+    std::iota(all.begin(), all.end(), 0);
+    ASSERT_TRUE(KNearestOfPoints(*t, all, 3, true, {}, graph).ok());
+    if (host) EXPECT_NE(t->view_with_cached_rows().adj_offsets, nullptr);
+    const auto after = small();
+    ASSERT_EQ(before.size(), after.size());
+    for (size_t c = 0; c < before.size(); ++c) {
+      ASSERT_TRUE(before[c].ok() && after[c].ok()) << "call " << c;
+      EXPECT_EQ(before[c]->offsets, after[c]->offsets) << "call " << c;
+      EXPECT_EQ(before[c]->ids, after[c]->ids) << "call " << c;
+      EXPECT_EQ(before[c]->distances, after[c]->distances) << "call " << c;
+      EXPECT_EQ(before[c]->truncated, after[c]->truncated) << "call " << c;
+    }
+  }
+}
 TEST(Queries, Clustered) {
   CheckAllQueries(testing::ClusteredPoints(2000, 3), 4);
 }
