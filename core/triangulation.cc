@@ -148,13 +148,30 @@ struct Triangulation::AdjacencyCache {
   std::mutex mu;
   bool valid = false;
   SiteAdjacency rows;
-  // The queries' cell indexes of this step (CachedCellIndex), one per use.
+  // The queries' cell indexes of this step (CachedCellIndex): two radii
+  // (a simulation often asks two cut-offs per step), one k-nearest index.
   struct CellsSlot {
     bool valid = false;
     double key = 0.0;
+    uint64_t used = 0;  // when it was last asked for (the oldest goes)
     std::shared_ptr<const CellIndex> cells;
   };
-  CellsSlot cells[2];
+  static constexpr int kRadiusSlots = 2;
+  CellsSlot cells[kRadiusSlots + 1];
+  uint64_t cells_clock = 0;
+  // The slots of a use: [first, first + count).
+  static std::pair<int, int> SlotsOf(CellIndexUse use) {
+    return use == CellIndexUse::kRadius ? std::pair{0, kRadiusSlots}
+                                        : std::pair{kRadiusSlots, 1};
+  }
+  // The slot holding (use, key), or null.
+  CellsSlot* Find(CellIndexUse use, double key) {
+    const auto [first, count] = SlotsOf(use);
+    for (int i = first; i < first + count; ++i) {
+      if (cells[i].valid && cells[i].key == key) return &cells[i];
+    }
+    return nullptr;
+  }
   // Position queries' walk starts of this step (CachedHintGrid).
   std::shared_ptr<const HintGrid> hints;
 };
@@ -300,14 +317,28 @@ std::shared_ptr<const CellIndex> Triangulation::CachedCellIndex(
     CellIndexUse use, double key,
     const std::function<std::shared_ptr<const CellIndex>()>& make) const {
   std::lock_guard<std::mutex> lock(adjacency_->mu);
-  AdjacencyCache::CellsSlot& slot = adjacency_->cells[static_cast<int>(use)];
-  if (!slot.valid || slot.key != key) {
-    slot.cells.reset();
-    slot.cells = make();
-    slot.key = key;
-    slot.valid = true;
+  AdjacencyCache& cache = *adjacency_;
+  AdjacencyCache::CellsSlot* slot = cache.Find(use, key);
+  if (slot == nullptr) {
+    // An empty slot of the use, else its least recently asked for.
+    const auto [first, count] = AdjacencyCache::SlotsOf(use);
+    slot = &cache.cells[first];
+    for (int i = first; i < first + count; ++i) {
+      AdjacencyCache::CellsSlot& c = cache.cells[i];
+      if (!c.valid) {
+        slot = &c;
+        break;
+      }
+      if (c.used < slot->used) slot = &c;
+    }
+    slot->cells.reset();
+    slot->valid = false;
+    slot->cells = make();
+    slot->key = key;
+    slot->valid = true;
   }
-  return slot.cells;
+  slot->used = ++cache.cells_clock;
+  return slot->cells;
 }
 
 std::shared_ptr<const HintGrid> Triangulation::CachedHintGrid() const {
@@ -321,9 +352,7 @@ std::shared_ptr<const HintGrid> Triangulation::CachedHintGrid() const {
 
 bool Triangulation::HasCachedCellIndex(CellIndexUse use, double key) const {
   std::lock_guard<std::mutex> lock(adjacency_->mu);
-  const AdjacencyCache::CellsSlot& slot =
-      adjacency_->cells[static_cast<int>(use)];
-  return slot.valid && slot.key == key;
+  return adjacency_->Find(use, key) != nullptr;
 }
 
 TriangulationView Triangulation::query_view() const {

@@ -226,14 +226,15 @@ class Triangulation {
   // built on the first call after a change (in parallel, inside the arena)
   // and reused until the next step; concurrent callers wait for one build.
   TriangulationView query_view() const;
-  // What a cached cell index is for, each with its own slot.
+  // What a cached cell index is for, each with its own slots.
   enum class CellIndexUse { kRadius = 0, kNearest = 1 };
   // A cell index over this step's sites (core/cell_index.h) for one use:
   // radius queries (key: the radius, which is the cell side) or k-nearest
   // queries (key: k). Made by `make` on the first call of a step for this
-  // use and key, and kept for later batches of the same step and key (one
-  // key per use at a time; `make` may return null: the graph is used, and
-  // that decision is kept too). Concurrent callers wait for one build.
+  // use and key, and kept for later batches of the same step and key (two
+  // radii and one k at a time, the least recently asked for replaced;
+  // `make` may return null: the graph is used, and that decision is kept
+  // too). Concurrent callers wait for one build.
   std::shared_ptr<const CellIndex> CachedCellIndex(
       CellIndexUse use, double key,
       const std::function<std::shared_ptr<const CellIndex>()>& make) const;

@@ -7,6 +7,7 @@
 #include <cmath>
 #include <random>
 
+#include "core/cell_index.h"
 #include "tests/core/test_util.h"
 
 namespace kinetri::core {
@@ -131,6 +132,43 @@ TEST(RoundPolicy, MaxPassesIsHonoured) {
       EXPECT_GT(r->failed_attempts + r->local_halvings, 0u);
     }
   }
+}
+
+// The step's cell indexes: two radii and one k-nearest index are kept,
+// the least recently asked for radius goes, and a step forgets them all.
+TEST(CachedCellIndex, TwoRadiiAndOneNearestPerStep) {
+  auto t = Triangulation::Create(testing::UniformPoints(2000, 3));
+  ASSERT_TRUE(t.ok()) << t.status();
+  using Use = Triangulation::CellIndexUse;
+  int made = 0;
+  auto get = [&](Use use, double key) {
+    t->CachedCellIndex(use, key, [&]() -> std::shared_ptr<const CellIndex> {
+      ++made;
+      return nullptr;  // a kept "walk the graph" decision
+    });
+  };
+  get(Use::kRadius, 0.1);
+  get(Use::kRadius, 0.2);
+  get(Use::kNearest, 0.0);
+  EXPECT_EQ(made, 3);
+  get(Use::kRadius, 0.2);  // kept, all three
+  get(Use::kRadius, 0.1);  // now the most recently asked for radius
+  get(Use::kNearest, 0.0);
+  EXPECT_EQ(made, 3);
+  EXPECT_FALSE(t->HasCachedCellIndex(Use::kNearest, 0.1));
+  get(Use::kRadius, 0.3);  // replaces 0.2, the least recently asked for
+  EXPECT_EQ(made, 4);
+  EXPECT_FALSE(t->HasCachedCellIndex(Use::kRadius, 0.2));
+  EXPECT_TRUE(t->HasCachedCellIndex(Use::kRadius, 0.1));
+  EXPECT_TRUE(t->HasCachedCellIndex(Use::kRadius, 0.3));
+  EXPECT_TRUE(t->HasCachedCellIndex(Use::kNearest, 0.0));
+  std::vector<Vec2> none(t->size(), Vec2{0.0, 0.0});
+  ASSERT_TRUE(t->ApplyDisplacements(DisplacementBatch::Dense(none)).ok());
+  std::vector<Vec2> small(t->size(), Vec2{1e-6, 0.0});
+  ASSERT_TRUE(t->ApplyDisplacements(DisplacementBatch::Dense(small)).ok());
+  EXPECT_FALSE(t->HasCachedCellIndex(Use::kRadius, 0.1));
+  EXPECT_FALSE(t->HasCachedCellIndex(Use::kRadius, 0.3));
+  EXPECT_FALSE(t->HasCachedCellIndex(Use::kNearest, 0.0));
 }
 
 }  // namespace
