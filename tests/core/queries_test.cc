@@ -16,6 +16,7 @@
 #include <random>
 #include <thread>
 
+#include "core/cell_index.h"
 #include "core/predicates.h"
 #include "tests/core/executor_under_test.h"
 #include "tests/core/test_util.h"
@@ -198,8 +199,9 @@ TEST(Queries, Uniform) { CheckAllQueries(testing::UniformPoints(2000, 1), 2); }
 
 // The k nearest of every point of a large set, by the planner's choice and
 // by each plan, against brute force for a sample: the planner scans a cell
-// index on evenly spread sets (and keeps it for the step) and walks the
-// graph on clustered ones (and keeps that decision).
+// index (kept for the step), dense on evenly spread sets and sparse, with
+// cells the size of the clusters', on clustered ones. Positions between
+// clusters are answered by the graph from the same step's index.
 TEST(Queries, KNearestOfEveryPointByEachPlan) {
   for (bool clustered : {false, true}) {
     const std::vector<Vec2> pts = clustered
@@ -226,15 +228,27 @@ TEST(Queries, KNearestOfEveryPointByEachPlan) {
         EXPECT_EQ(got->distances, ref->distances) << "k=" << k;
       }
     }
+    // Positions, inside and between the clusters (and far outside), with
+    // the step's index built: the planner's rows against brute force.
+    std::vector<Vec2> qs = QueryPoints(pts, 300, 33);
+    for (double d : {-3.0, 0.5, 40.0}) qs.push_back({d, d});
+    auto pos = KNearest(*t, qs, 8);
+    ASSERT_TRUE(pos.ok()) << pos.status();
+    for (size_t i = 0; i < qs.size(); ++i) {
+      auto rank = BruteRank(pts, qs[i], kNoVertex);
+      rank.resize(8);
+      ASSERT_EQ(Row(*pos, i), rank) << "position " << i;
+    }
     if (testing::ExecutorOptions().executor == Executor::kDevice) continue;
-    // The planner's decision of this step: an index for the even set, the
-    // graph for the clustered one (made by the batches above, not here).
+    // The planner's decision of this step (made by the batches above, not
+    // here): an index, dense for the even set, sparse for the clustered one.
     auto kept = t->CachedCellIndex(Triangulation::CellIndexUse::kNearest, 0.0,
                                    []() -> std::shared_ptr<const CellIndex> {
                                      ADD_FAILURE() << "not cached";
                                      return nullptr;
                                    });
-    EXPECT_EQ(kept != nullptr, !clustered);
+    ASSERT_NE(kept, nullptr);
+    EXPECT_EQ(kept->sparse(), clustered);
   }
 }
 
