@@ -11,9 +11,16 @@
 namespace kinetri::core {
 namespace {
 
-// Cells holding more sites than this get a sub-grid of about four sites
-// per cell (at most kMaxSubSide cells a side).
-constexpr uint32_t kRefineAbove = 16;
+// Cells estimated to hold more sites than this get a sub-grid of about
+// four sites per cell (at most kMaxSubSide cells a side).
+constexpr uint32_t kRefineAbove = 32;
+// Sites are counted per cell from a sample: those whose index in the site
+// list is a multiple of this (sites follow a Hilbert curve, so a cell's
+// sites come in runs: a cell needs about 40 sites to be refined). Enough to
+// tell a crowded cell (a cluster's hundreds or thousands) from an ordinary
+// one (about four), and the sub-grids are then known before the pass that
+// finds every cell's first site, which fills them in the same pass.
+constexpr uint32_t kCountEvery = 16;
 constexpr uint32_t kMaxSubSide = 1024;
 
 // Fills the empty entries of a side x side row-major block: from the
@@ -54,6 +61,56 @@ void FillEmpty(uint32_t* cells, size_t side) {
   }
 }
 
+// Fills the empty cells of the main grid with about the site nearest to
+// each cell's centre: two raster passes (forward, then backward), each
+// empty cell taking the best of its own entry and those of the four
+// neighbours the pass has already visited, by distance from its centre.
+// Clustered points leave most cells empty; a query there then starts next
+// to its nearest site instead of deep inside whatever cluster its row
+// meets first (the walk out of a cluster crosses it site by site).
+void FillNearest(uint32_t* cells, const HintGridView& g, const Vec2* pos) {
+  const size_t side = g.side;
+  std::vector<uint8_t> empty(side * side);
+  bool any = false;
+  for (size_t c = 0; c < side * side; ++c) {
+    empty[c] = cells[c] == kNoVertex;
+    any |= empty[c] != 0;
+  }
+  if (!any) return;
+  auto centre = [&](size_t x, size_t y) {
+    return Vec2{g.scale.x > 0 ? g.lo.x + (x + 0.5) / g.scale.x : g.lo.x,
+                g.scale.y > 0 ? g.lo.y + (y + 0.5) / g.scale.y : g.lo.y};
+  };
+  auto visit = [&](size_t x, size_t y, const int(&dx)[4], const int(&dy)[4]) {
+    const size_t c = y * side + x;
+    if (!empty[c]) return;
+    const Vec2 q = centre(x, y);
+    auto d2 = [&](uint32_t s) {
+      const double ex = pos[s].x - q.x, ey = pos[s].y - q.y;
+      return ex * ex + ey * ey;
+    };
+    double best = cells[c] == kNoVertex ? HUGE_VAL : d2(cells[c]);
+    for (int k = 0; k < 4; ++k) {
+      const size_t nx = x + dx[k], ny = y + dy[k];  // wraps past the edges
+      if (nx >= side || ny >= side) continue;
+      const uint32_t s = cells[ny * side + nx];
+      if (s == kNoVertex || s == cells[c]) continue;
+      if (const double d = d2(s); d < best) {
+        best = d;
+        cells[c] = s;
+      }
+    }
+  };
+  static constexpr int kFwdX[4] = {-1, -1, 0, 1}, kFwdY[4] = {0, -1, -1, -1};
+  static constexpr int kBwdX[4] = {1, 1, 0, -1}, kBwdY[4] = {0, 1, 1, 1};
+  for (size_t y = 0; y < side; ++y) {
+    for (size_t x = 0; x < side; ++x) visit(x, y, kFwdX, kFwdY);
+  }
+  for (size_t y = side; y-- > 0;) {
+    for (size_t x = side; x-- > 0;) visit(x, y, kBwdX, kBwdY);
+  }
+}
+
 }  // namespace
 
 HintGrid::HintGrid(const TriangulationView& v) {
@@ -89,28 +146,22 @@ HintGrid::HintGrid(const TriangulationView& v) {
   const size_t side = view_.side, num_cells = side * side;
   view_.scale = {hi.x > lo.x ? side / (hi.x - lo.x) : 0.0,
                  hi.y > lo.y ? side / (hi.y - lo.y) : 0.0};
-  cells_.assign(num_cells, kNoVertex);
-  // The first site (in internal, i.e. Hilbert, order: the smallest id)
-  // found in each cell, how many each cell holds, and where each site lies
-  // in its cell; in parallel, the same for any thread count.
-  std::vector<uint32_t> cell_of(v.num_sites), within(v.num_sites),
-      count(num_cells, 0);
-  ParallelFor(0, v.num_sites, [&](size_t i) {
-    const uint32_t s = v.sites[i];
+  // How many sites each cell holds, estimated from every kCountEvery-th
+  // site (a pass over a sixteenth of them).
+  std::vector<uint32_t> count(num_cells, 0);
+  const size_t num_sampled = (v.num_sites + kCountEvery - 1) / kCountEvery;
+  ParallelFor(0, num_sampled, [&](size_t j) {
     uint32_t ix, iy, fx, fy;
-    view_.Locate(v.pos[s], &ix, &iy, &fx, &fy);
-    const size_t c = size_t{iy} * side + ix;
-    cell_of[i] = static_cast<uint32_t>(c);
-    within[i] = fy << 16 | fx;
-    AtomicMin(&cells_[c], s);
-    std::atomic_ref<uint32_t>(count[c]).fetch_add(1, std::memory_order_relaxed);
+    view_.Locate(v.pos[v.sites[j * kCountEvery]], &ix, &iy, &fx, &fy);
+    std::atomic_ref<uint32_t>(count[size_t{iy} * side + ix])
+        .fetch_add(1, std::memory_order_relaxed);
   });
-  FillEmpty(cells_.data(), side);
   // Sub-grids of the crowded cells, after the cells (their offsets reuse
   // `count`: 0 for a cell that is not refined).
+  cells_.assign(num_cells, kNoVertex);
   std::vector<uint32_t> refined;
   for (size_t c = 0; c < num_cells; ++c) {
-    const uint32_t k = count[c];
+    const uint32_t k = count[c] * kCountEvery;
     count[c] = 0;
     if (k <= kRefineAbove) continue;
     const size_t off = cells_.size();
@@ -123,14 +174,31 @@ HintGrid::HintGrid(const TriangulationView& v) {
     refined.push_back(static_cast<uint32_t>(c));
   }
   view_.cells = cells_.data();
-  // The first site of each sub-cell.
-  ParallelFor(0, v.num_sites, [&](size_t i) {
-    const uint32_t off = count[cell_of[i]];
-    if (off == 0) return;
-    AtomicMin(&cells_[view_.SubCell(HintGridView::kRefined | off,
-                                    within[i] & 0xFFFFu, within[i] >> 16)],
-              v.sites[i]);
-  });
+  // The first site (in internal, i.e. Hilbert, order: the smallest id) of
+  // each cell and sub-cell, in one pass, in parallel, the same for any
+  // thread count. Sites come in ascending order, so an atomic minimum is a
+  // load once its cell has a site.
+  const HintGridView grid = view_;  // (a copy the loop keeps in registers)
+  ParallelFor(
+      0, num_blocks,
+      [&](size_t b) {
+        const size_t end = std::min<size_t>(v.num_sites, (b + 1) * kBlock);
+        for (size_t i = b * kBlock; i < end; ++i) {
+          const uint32_t s = v.sites[i];
+          uint32_t ix, iy, fx, fy;
+          grid.Locate(v.pos[s], &ix, &iy, &fx, &fy);
+          const size_t c = size_t{iy} * side + ix;
+          AtomicMin(&cells_[c], s);
+          if (const uint32_t off = count[c]; off != 0) {
+            AtomicMin(
+                &cells_[grid.SubCell(HintGridView::kRefined | off, fx, fy)], s);
+          }
+        }
+      },
+      1);
+  // (Refined cells still hold their first site here, as a neighbour for
+  // the empty cells.)
+  FillNearest(cells_.data(), grid, v.pos);
   ParallelFor(
       0, refined.size(),
       [&](size_t j) {

@@ -218,20 +218,24 @@ QueryBatch PointQueries(const Triangulation& t, absl::Span<const uint32_t> ids,
   return out;
 }
 
-// Indices 0..keys.size()-1 ordered by key (stable), keys < bound.
+// Indices 0..keys.size()-1 ordered by key >> shift (stable), keys < bound:
+// a counting sort, with the keys coarsened (by the smallest shift) until
+// there are at most two buckets per key, so it costs O(keys) whatever the
+// bound. The order only groups queries whose start sites are near in the
+// Hilbert order (8 sites apart for 100K queries on 1M sites); a comparison
+// sort of the exact keys cost 7 ms for 100K queries at 1M, serial.
 std::vector<uint32_t> OrderByKey(const std::vector<uint32_t>& keys,
                                  uint32_t bound) {
   std::vector<uint32_t> order(keys.size());
-  if (keys.size() < bound / 8) {  // small batch: a comparison sort
-    for (uint32_t i = 0; i < order.size(); ++i) order[i] = i;
-    std::stable_sort(order.begin(), order.end(),
-                     [&](uint32_t a, uint32_t b) { return keys[a] < keys[b]; });
-    return order;
+  int shift = 0;
+  while ((uint64_t{bound} >> shift) > 2 * uint64_t{keys.size()} + 64) ++shift;
+  const size_t buckets = (uint64_t{bound} >> shift) + 1;
+  std::vector<uint32_t> count(buckets + 1, 0);
+  for (uint32_t k : keys) ++count[(k >> shift) + 1];
+  for (size_t b = 0; b < buckets; ++b) count[b + 1] += count[b];
+  for (uint32_t i = 0; i < keys.size(); ++i) {
+    order[count[keys[i] >> shift]++] = i;
   }
-  std::vector<uint32_t> count(size_t{bound} + 1, 0);
-  for (uint32_t k : keys) ++count[k + 1];
-  for (uint32_t k = 0; k < bound; ++k) count[k + 1] += count[k];
-  for (uint32_t i = 0; i < keys.size(); ++i) order[count[keys[i]]++] = i;
   return order;
 }
 

@@ -73,6 +73,42 @@ TEST(HintGrid, HintsLieNextToTheQueryInDenseClusters) {
       << ", mean nearest-neighbour distance " << nn_sum / v.num_sites;
 }
 
+// Clustered points leave most cells of the grid empty. An empty cell's hint
+// is about the site nearest to the cell, not the first cluster its row
+// meets: a walk from there would cross that cluster site by site.
+TEST(HintGrid, EmptyCellsHintTheSiteNearestToThem) {
+  std::mt19937_64 rng(5);
+  std::uniform_real_distribution<double> u(0.0, 1.0);
+  std::normal_distribution<double> g(0.0, 0.002);
+  std::vector<Vec2> centers(80);
+  for (Vec2& c : centers) c = {u(rng), u(rng)};
+  std::vector<Vec2> pts(40000);
+  for (size_t i = 0; i < pts.size(); ++i) {
+    const Vec2& c = centers[i % centers.size()];
+    pts[i] = {c.x + g(rng), c.y + g(rng)};
+  }
+  auto t = Triangulation::Create(pts);
+  ASSERT_TRUE(t.ok()) << t.status();
+  const TriangulationView v = t->view();
+  const HintGrid grid(v);
+  const HintGridView h = grid.view();
+  const double diagonal = std::hypot(1.0 / h.scale.x, 1.0 / h.scale.y);
+  int far = 0;
+  const int queries = 2000;
+  for (int i = 0; i < queries; ++i) {
+    const Vec2 q{u(rng), u(rng)};
+    double nearest = INFINITY;
+    for (uint32_t j = 0; j < v.num_sites; ++j) {
+      nearest = std::min(nearest, Distance(q, v.pos[v.sites[j]]));
+    }
+    const uint32_t hint = h.Hint(q);
+    ASSERT_TRUE(IsSite(v, hint));
+    if (Distance(q, v.pos[hint]) > nearest + 2.0 * diagonal) ++far;
+  }
+  // (With each row's nearest non-empty cell instead, most were far.)
+  EXPECT_LE(far, queries / 50) << far << " of " << queries;
+}
+
 TEST(HintGrid, EveryPositionGetsASiteAndMemoryStaysLinear) {
   std::mt19937_64 rng(3);
   std::uniform_real_distribution<double> u(-0.5, 1.5);
