@@ -62,53 +62,71 @@ void FillEmpty(uint32_t* cells, size_t side) {
 }
 
 // Fills the empty cells of the main grid with about the site nearest to
-// each cell's centre: two raster passes (forward, then backward), each
-// empty cell taking the best of its own entry and those of the four
-// neighbours the pass has already visited, by distance from its centre.
-// Clustered points leave most cells empty; a query there then starts next
-// to its nearest site instead of deep inside whatever cluster its row
-// meets first (the walk out of a cluster crosses it site by site).
+// each cell's centre, by propagation along rows (both ways, rows in
+// parallel), then along columns (both ways, blocks of columns in
+// parallel): an empty cell takes its neighbour's site when that site lies
+// closer to its own centre. Clustered points leave most cells empty; a
+// query there then starts next to its nearest site instead of deep inside
+// whatever cluster its row meets first (the walk out of a cluster crosses
+// it site by site).
 void FillNearest(uint32_t* cells, const HintGridView& g, const Vec2* pos) {
   const size_t side = g.side;
   std::vector<uint8_t> empty(side * side);
-  bool any = false;
-  for (size_t c = 0; c < side * side; ++c) {
-    empty[c] = cells[c] == kNoVertex;
-    any |= empty[c] != 0;
-  }
-  if (!any) return;
-  auto centre = [&](size_t x, size_t y) {
-    return Vec2{g.scale.x > 0 ? g.lo.x + (x + 0.5) / g.scale.x : g.lo.x,
-                g.scale.y > 0 ? g.lo.y + (y + 0.5) / g.scale.y : g.lo.y};
-  };
-  auto visit = [&](size_t x, size_t y, const int(&dx)[4], const int(&dy)[4]) {
-    const size_t c = y * side + x;
-    if (!empty[c]) return;
-    const Vec2 q = centre(x, y);
-    auto d2 = [&](uint32_t s) {
-      const double ex = pos[s].x - q.x, ey = pos[s].y - q.y;
+  std::atomic<bool> any{false};
+  ParallelFor(0, side, [&](size_t y) {
+    bool row_any = false;
+    for (size_t c = y * side; c < (y + 1) * side; ++c) {
+      empty[c] = cells[c] == kNoVertex;
+      row_any |= empty[c] != 0;
+    }
+    if (row_any) any.store(true, std::memory_order_relaxed);
+  });
+  if (!any.load()) return;
+  // Cell sides (0 along an axis of no extent); multiplied, not divided.
+  const Vec2 width{g.scale.x > 0 ? 1.0 / g.scale.x : 0.0,
+                   g.scale.y > 0 ? 1.0 / g.scale.y : 0.0};
+  // Cell c (at x, y) takes site s when s lies closer to its centre.
+  auto offer = [&](size_t c, size_t x, size_t y, uint32_t s) {
+    if (s == kNoVertex || s == cells[c]) return;
+    const double cx = g.lo.x + (x + 0.5) * width.x;
+    const double cy = g.lo.y + (y + 0.5) * width.y;
+    auto d2 = [&](uint32_t t) {
+      const double ex = pos[t].x - cx, ey = pos[t].y - cy;
       return ex * ex + ey * ey;
     };
-    double best = cells[c] == kNoVertex ? HUGE_VAL : d2(cells[c]);
-    for (int k = 0; k < 4; ++k) {
-      const size_t nx = x + dx[k], ny = y + dy[k];  // wraps past the edges
-      if (nx >= side || ny >= side) continue;
-      const uint32_t s = cells[ny * side + nx];
-      if (s == kNoVertex || s == cells[c]) continue;
-      if (const double d = d2(s); d < best) {
-        best = d;
-        cells[c] = s;
-      }
-    }
+    if (cells[c] == kNoVertex || d2(s) < d2(cells[c])) cells[c] = s;
   };
-  static constexpr int kFwdX[4] = {-1, -1, 0, 1}, kFwdY[4] = {0, -1, -1, -1};
-  static constexpr int kBwdX[4] = {1, 1, 0, -1}, kBwdY[4] = {0, 1, 1, 1};
-  for (size_t y = 0; y < side; ++y) {
-    for (size_t x = 0; x < side; ++x) visit(x, y, kFwdX, kFwdY);
-  }
-  for (size_t y = side; y-- > 0;) {
-    for (size_t x = side; x-- > 0;) visit(x, y, kBwdX, kBwdY);
-  }
+  ParallelFor(
+      0, side,
+      [&](size_t y) {
+        const size_t row = y * side;
+        for (size_t x = 1; x < side; ++x) {
+          if (empty[row + x]) offer(row + x, x, y, cells[row + x - 1]);
+        }
+        for (size_t x = side - 1; x-- > 0;) {
+          if (empty[row + x]) offer(row + x, x, y, cells[row + x + 1]);
+        }
+      },
+      8);
+  constexpr size_t kColumns = 16;  // a cache line of each row at a time
+  ParallelFor(
+      0, (side + kColumns - 1) / kColumns,
+      [&](size_t b) {
+        const size_t x0 = b * kColumns, x1 = std::min(side, x0 + kColumns);
+        for (size_t y = 1; y < side; ++y) {
+          for (size_t x = x0; x < x1; ++x) {
+            const size_t c = y * side + x;
+            if (empty[c]) offer(c, x, y, cells[c - side]);
+          }
+        }
+        for (size_t y = side - 1; y-- > 0;) {
+          for (size_t x = x0; x < x1; ++x) {
+            const size_t c = y * side + x;
+            if (empty[c]) offer(c, x, y, cells[c + side]);
+          }
+        }
+      },
+      1);
 }
 
 }  // namespace
