@@ -54,6 +54,42 @@ double CellIndex::SideForOccupancy(const TriangulationView& v,
   return std::isfinite(side) && std::isfinite(1.0 / side) ? side : 0.0;
 }
 
+double CellIndex::EstimateOccupancy(const TriangulationView& v, double cell,
+                                    uint32_t every, size_t max_cells) {
+  if (v.num_sites == 0 || every == 0 || !(cell > 0.0) ||
+      !std::isfinite(1.0 / cell)) {
+    return INFINITY;
+  }
+  const Box box = SitesBox(v);
+  const double inv = 1.0 / cell;
+  const double cx = std::floor((box.hi_x - box.lo_x) * inv) + 1.0;
+  const double cy = std::floor((box.hi_y - box.lo_y) * inv) + 1.0;
+  if (!(cx * cy <= static_cast<double>(max_cells))) return INFINITY;
+  const uint32_t nx = static_cast<uint32_t>(cx), ny = static_cast<uint32_t>(cy);
+  auto index = [&](double c, double origin, uint32_t count) {
+    const double t = (c - origin) * inv;
+    if (!(t > 0.0)) return uint32_t{0};
+    if (t >= static_cast<double>(count - 1)) return count - 1;
+    return static_cast<uint32_t>(t);
+  };
+  // A site's sampled cell-mates m (itself included): over the samples, the
+  // mean of m is about 1 + (occupancy - 1) / every.
+  std::vector<uint32_t> count(size_t{nx} * ny, 0);
+  uint64_t samples = 0, sum = 0;
+  std::vector<uint32_t> cell_of;
+  cell_of.reserve(v.num_sites / every + 1);
+  for (uint32_t i = 0; i < v.num_sites; i += every) {
+    const Vec2& p = v.pos[v.sites[i]];
+    const uint32_t c = index(p.y, box.lo_y, ny) * nx + index(p.x, box.lo_x, nx);
+    ++count[c];
+    cell_of.push_back(c);
+    ++samples;
+  }
+  for (const uint32_t c : cell_of) sum += count[c];
+  const double mates = static_cast<double>(sum) / samples;
+  return std::max(1.0, 1.0 + (mates - 1.0) * every);
+}
+
 std::optional<CellIndex> CellIndex::Build(const TriangulationView& v,
                                           double cell, const Limits& limits) {
   const uint32_t ns = v.num_sites;

@@ -47,6 +47,12 @@ class CellIndex {
   // sites, or a box of no area: the sites on a line).
   static double SideForOccupancy(const TriangulationView& v,
                                  double sites_per_cell);
+  // About the occupancy() of an index of v's sites with cells of side
+  // `cell`, from every `every`-th site (in internal order) alone: a pass
+  // over a fraction of the sites instead of a build. Infinity when more
+  // than max_cells cells would be needed.
+  static double EstimateOccupancy(const TriangulationView& v, double cell,
+                                  uint32_t every, size_t max_cells);
   // The cell side.
   double side() const { return side_; }
 

@@ -153,5 +153,33 @@ TEST(CellIndex, LimitsDecideTheForm) {
   EXPECT_FALSE(d->sparse());
 }
 
+// The sampled estimate tells crowded cells from ordinary ones before an
+// index is built (the k-nearest queries pick the form by it): low, never
+// above the crowding threshold, for even points; large for clusters.
+TEST(CellIndex, SampledOccupancySeparatesClustersFromEvenPoints) {
+  for (const bool clustered : {false, true}) {
+    const auto pts = clustered ? testing::ClusteredPoints(100000, 12)
+                               : testing::UniformPoints(100000, 12);
+    auto t = Triangulation::Create(pts);
+    ASSERT_TRUE(t.ok());
+    const TriangulationView v = t->view();
+    const double side = CellIndex::SideForOccupancy(v, 2.0);
+    const auto exact = CellIndex::Build(v, side, Dense());
+    ASSERT_TRUE(exact);
+    const double estimate = CellIndex::EstimateOccupancy(v, side, 16, SIZE_MAX);
+    if (clustered) {
+      EXPECT_GT(exact->occupancy(), 24.0);
+      EXPECT_GT(estimate, 24.0) << "exact " << exact->occupancy();
+      EXPECT_LT(estimate, 2.0 * exact->occupancy());
+    } else {
+      EXPECT_LT(exact->occupancy(), 4.0);
+      EXPECT_GE(estimate, 1.0);
+      EXPECT_LT(estimate, 6.0) << "exact " << exact->occupancy();
+    }
+    // More cells than allowed: no estimate.
+    EXPECT_EQ(CellIndex::EstimateOccupancy(v, side, 16, 10), INFINITY);
+  }
+}
+
 }  // namespace
 }  // namespace kinetri::core
