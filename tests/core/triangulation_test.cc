@@ -8,6 +8,8 @@
 #include <random>
 
 #include "core/cell_index.h"
+#include "core/hint_grid.h"
+#include "core/queries.h"
 #include "tests/core/test_util.h"
 
 namespace kinetri::core {
@@ -169,6 +171,72 @@ TEST(CachedCellIndex, TwoRadiiAndOneNearestPerStep) {
   EXPECT_FALSE(t->HasCachedCellIndex(Use::kRadius, 0.1));
   EXPECT_FALSE(t->HasCachedCellIndex(Use::kRadius, 0.3));
   EXPECT_FALSE(t->HasCachedCellIndex(Use::kNearest, 0.0));
+}
+
+// Position queries' hint grid outlives a few local steps (a hint is only
+// where a walk starts); age, or a step that changes ids or sites, brings a
+// new one. The nearest points stay exact throughout.
+TEST(CachedHintGrid, ServesAFewLocalStepsThenIsBuiltAgain) {
+  std::vector<Vec2> pts = testing::UniformPoints(3000, 4);
+  auto t = Triangulation::Create(pts);
+  ASSERT_TRUE(t.ok()) << t.status();
+  std::mt19937_64 rng(4);
+  std::normal_distribution<double> move(0.0, 0.002);  // 0.1 spacings
+  std::uniform_real_distribution<double> u(0.0, 1.0);
+  auto step = [&] {
+    std::vector<Vec2> d(pts.size());
+    for (size_t i = 0; i < pts.size(); ++i) {
+      d[i] = {move(rng), move(rng)};
+      pts[i] = {pts[i].x + d[i].x, pts[i].y + d[i].y};
+    }
+    auto r = t->ApplyDisplacements(DisplacementBatch::Dense(d));
+    ASSERT_TRUE(r.ok()) << r.status();
+  };
+  auto check_nearest = [&] {
+    std::vector<Vec2> qs(300);
+    for (Vec2& q : qs) q = {u(rng) * 1.2 - 0.1, u(rng) * 1.2 - 0.1};
+    auto nn = Nearest(*t, qs);
+    ASSERT_TRUE(nn.ok()) << nn.status();
+    for (size_t i = 0; i < qs.size(); ++i) {
+      auto d2 = [&](const Vec2& p) {
+        return (p.x - qs[i].x) * (p.x - qs[i].x) +
+               (p.y - qs[i].y) * (p.y - qs[i].y);
+      };
+      double best = INFINITY;
+      for (const Vec2& p : pts) best = std::min(best, d2(p));
+      ASSERT_EQ(nn->row_size(i), 1u);
+      ASSERT_EQ(d2(pts[nn->ids[nn->offsets[i]]]), best) << "query " << i;
+    }
+  };
+  const auto built = t->CachedHintGrid();
+  for (uint64_t age = 1; age <= 4; ++age) {
+    step();
+    EXPECT_EQ(t->CachedHintGrid(), built) << "after " << age << " steps";
+    check_nearest();
+  }
+  step();
+  const auto rebuilt = t->CachedHintGrid();
+  EXPECT_NE(rebuilt, built);
+  check_nearest();
+  // A step without position queries passes the grid on as well.
+  step();
+  step();
+  EXPECT_EQ(t->CachedHintGrid(), rebuilt);
+  // A point joins: ids may change, a new grid.
+  DisplacementBatch join;
+  join.add = {{0.5, 0.5}};
+  ASSERT_TRUE(t->ApplyDisplacements(join).ok());
+  pts.push_back({0.5, 0.5});
+  const auto after_join = t->CachedHintGrid();
+  EXPECT_NE(after_join, rebuilt);
+  check_nearest();
+  // Two points coincide: a point is no longer a site of its own.
+  DisplacementBatch onto = DisplacementBatch::AbsoluteSparse({1}, {pts[0]});
+  ASSERT_TRUE(t->ApplyDisplacements(onto).ok());
+  pts[1] = pts[0];
+  ASSERT_LT(t->num_sites(), t->size());
+  EXPECT_NE(t->CachedHintGrid(), after_join);
+  check_nearest();
 }
 
 }  // namespace
