@@ -338,8 +338,9 @@ int main(int argc, char** argv) {
       return 1;
     }
     if (local) {
-      // The library alone: the same step and query batch (the options the
-      // server passes for this request: set rows, no distances).
+      // The library alone: the same step and query batch, with the options
+      // the server passes for this request (the C++ client asks for
+      // distances, so rows closest first with their distances).
       std::vector<kinetri::core::Vec2> d(n), qs(nq);
       for (int i = 0; i < n; ++i) d[i] = {dxy[2 * i], dxy[2 * i + 1]};
       for (int j = 0; j < nq; ++j) qs[j] = {qxy[2 * j], qxy[2 * j + 1]};
@@ -348,7 +349,7 @@ int main(int argc, char** argv) {
           kinetri::core::DisplacementBatch::Dense(std::move(d)));
       const double l_up = Ms(t0);
       kinetri::core::RowOptions rows;
-      rows.distances = false;
+      rows.distances = true;
       rows.batch_queries = static_cast<uint64_t>(nq);
       t1 = Clock::now();
       auto ln = kinetri::core::WithinRadius(*local, qs, r, 0, {}, rows);

@@ -1,6 +1,11 @@
 // The one place where protobuf messages and core types are converted.
 #include "server/convert.h"
 
+#include <bit>
+#include <cassert>
+#include <cstring>
+#include <string>
+
 #include "absl/strings/str_cat.h"
 
 namespace kinetri::server {
@@ -217,45 +222,153 @@ ChunkCursor::ChunkCursor(const core::NeighborLists& lists, uint64_t count,
       results_per_chunk_(std::max<uint64_t>(results_per_chunk, 1)),
       start_(count > 0 ? lists.offsets[0] : 0) {}
 
-bool ChunkCursor::Next(v1::QueryResponse* r) {
+ChunkCursor::Cut ChunkCursor::NextCut() const {
+  const auto& off = lists_.offsets;
+  const uint64_t limit = start_ + results_per_chunk_;
+  Cut cut;
+  cut.end = start_;
+  while (row_ + cut.rows < count_ && cut.rows < rows_per_chunk_ &&
+         off[row_ + cut.rows + 1] <= limit) {
+    cut.end = off[row_ + cut.rows + 1];
+    ++cut.rows;
+  }
+  if (cut.rows == 0 && row_ < count_) {
+    // The row does not fit: as much of it as does, continued next.
+    cut.end = limit;
+    cut.continues = true;
+  }
+  return cut;
+}
+
+void ChunkCursor::Advance(const Cut& cut) {
+  row_ += cut.rows;
+  start_ = cut.end;
+  done_ = row_ >= count_;
+}
+
+namespace {
+
+// Protocol-buffer wire format: varints, tags and packed fields.
+inline size_t VarintSize(uint64_t v) {
+  size_t n = 1;
+  while (v >= 0x80) {
+    v >>= 7;
+    ++n;
+  }
+  return n;
+}
+inline char* PutVarint(char* p, uint64_t v) {
+  while (v >= 0x80) {
+    *p++ = static_cast<char>(v | 0x80);
+    v >>= 7;
+  }
+  *p++ = static_cast<char>(v);
+  return p;
+}
+constexpr uint32_t kVarint = 0, kDelimited = 2;
+constexpr uint64_t Tag(uint32_t field, uint32_t type) {
+  return uint64_t{field} << 3 | type;
+}
+// A packed field of `payload` bytes (nothing when empty): its tag and
+// length, for the size pass.
+inline size_t PackedSize(uint32_t field, size_t payload) {
+  return payload == 0 ? 0
+                      : VarintSize(Tag(field, kDelimited)) +
+                            VarintSize(payload) + payload;
+}
+inline char* PutPackedHeader(char* p, uint32_t field, size_t payload) {
+  p = PutVarint(p, Tag(field, kDelimited));
+  return PutVarint(p, payload);
+}
+// A scalar field (nothing when zero, as proto3 writes it).
+inline size_t ScalarSize(uint32_t field, uint64_t v) {
+  return v == 0 ? 0 : VarintSize(Tag(field, kVarint)) + VarintSize(v);
+}
+inline char* PutScalar(char* p, uint32_t field, uint64_t v) {
+  if (v == 0) return p;
+  p = PutVarint(p, Tag(field, kVarint));
+  return PutVarint(p, v);
+}
+
+}  // namespace
+
+bool ChunkCursor::NextBytes(std::string* bytes) {
   if (done_) return false;
   const auto& off = lists_.offsets;
-  r->Clear();
-  r->set_step(step_);
-  r->set_first_row(global_first_ + row_);
-  r->set_total_rows(total_rows_);
-  r->add_offsets(0);
-  const uint64_t limit = start_ + results_per_chunk_;
-  uint64_t end = start_;  // one past the chunk's last result
-  uint64_t rows = 0;
-  while (row_ + rows < count_ && rows < rows_per_chunk_ &&
-         off[row_ + rows + 1] <= limit) {
-    end = off[row_ + rows + 1];
-    r->add_offsets(end - start_);
-    if (lists_.truncated[row_ + rows]) r->add_truncated_rows(rows);
-    ++rows;
+  const Cut cut = NextCut();
+  const uint64_t first_row = global_first_ + row_;
+  // The fields of QueryResponse in field order (as protobuf writes them):
+  // 1 step, 2 first_row, 3 offsets, 4 ids, 5 distances, 6 truncated_rows,
+  // 7 total_rows, 8 client_ids, 9 last_row_continues.
+  auto offset_at = [&](uint64_t k) {  // k in [0, offsets)
+    if (k == 0) return uint64_t{0};
+    if (k <= cut.rows) return off[row_ + k] - start_;
+    return cut.end - start_;  // the continued row's part
+  };
+  const uint64_t num_offsets = 1 + cut.rows + (cut.continues ? 1 : 0);
+  size_t offsets_bytes = 0;
+  for (uint64_t k = 0; k < num_offsets; ++k) {
+    offsets_bytes += VarintSize(offset_at(k));
   }
-  if (rows == 0 && row_ < count_) {
-    // The row does not fit: as much of it as does, continued next.
-    end = limit;
-    r->add_offsets(end - start_);
-    r->set_last_row_continues(true);
-  }
+  size_t ids_bytes = 0, client_bytes = 0, truncated_bytes = 0;
   if (client_ids_ != nullptr) {
-    for (uint64_t k = start_; k < end; ++k) {
-      r->add_client_ids((*client_ids_)[lists_.ids[k]]);
+    for (uint64_t k = start_; k < cut.end; ++k) {
+      client_bytes += VarintSize((*client_ids_)[lists_.ids[k]]);
     }
   } else {
-    r->mutable_ids()->Add(lists_.ids.begin() + start_,
-                          lists_.ids.begin() + end);
+    for (uint64_t k = start_; k < cut.end; ++k) {
+      ids_bytes += VarintSize(lists_.ids[k]);
+    }
   }
-  if (distances_) {
-    r->mutable_distances()->Add(lists_.distances.begin() + start_,
-                                lists_.distances.begin() + end);
+  for (uint64_t k = 0; k < cut.rows; ++k) {
+    if (lists_.truncated[row_ + k]) truncated_bytes += VarintSize(k);
   }
-  row_ += rows;
-  start_ = end;
-  done_ = row_ >= count_;
+  const size_t distance_bytes = distances_ ? 8 * (cut.end - start_) : 0;
+  const size_t size = ScalarSize(1, step_) + ScalarSize(2, first_row) +
+                      PackedSize(3, offsets_bytes) + PackedSize(4, ids_bytes) +
+                      PackedSize(5, distance_bytes) +
+                      PackedSize(6, truncated_bytes) +
+                      ScalarSize(7, total_rows_) + PackedSize(8, client_bytes) +
+                      (cut.continues ? 2 : 0);
+  bytes->resize(size);
+  char* p = bytes->data();
+  p = PutScalar(p, 1, step_);
+  p = PutScalar(p, 2, first_row);
+  p = PutPackedHeader(p, 3, offsets_bytes);
+  for (uint64_t k = 0; k < num_offsets; ++k) p = PutVarint(p, offset_at(k));
+  if (ids_bytes > 0) {
+    p = PutPackedHeader(p, 4, ids_bytes);
+    for (uint64_t k = start_; k < cut.end; ++k) {
+      p = PutVarint(p, lists_.ids[k]);
+    }
+  }
+  if (distance_bytes > 0) {
+    p = PutPackedHeader(p, 5, distance_bytes);
+    // Little-endian doubles (fixed64), as on every supported host.
+    static_assert(std::endian::native == std::endian::little);
+    std::memcpy(p, lists_.distances.data() + start_, distance_bytes);
+    p += distance_bytes;
+  }
+  if (truncated_bytes > 0) {
+    p = PutPackedHeader(p, 6, truncated_bytes);
+    for (uint64_t k = 0; k < cut.rows; ++k) {
+      if (lists_.truncated[row_ + k]) p = PutVarint(p, k);
+    }
+  }
+  p = PutScalar(p, 7, total_rows_);
+  if (client_bytes > 0) {
+    p = PutPackedHeader(p, 8, client_bytes);
+    for (uint64_t k = start_; k < cut.end; ++k) {
+      p = PutVarint(p, (*client_ids_)[lists_.ids[k]]);
+    }
+  }
+  if (cut.continues) {
+    p = PutVarint(p, Tag(9, kVarint));
+    *p++ = 1;
+  }
+  assert(p == bytes->data() + size);
+  (void)p;
+  Advance(cut);
   return true;
 }
 

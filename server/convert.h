@@ -81,11 +81,26 @@ class ChunkCursor {
               uint64_t global_first, uint64_t total_rows, uint64_t step,
               bool distances, const std::vector<uint64_t>* client_ids,
               uint64_t rows_per_chunk, uint64_t results_per_chunk);
-  // Fills *r with the next chunk (there is always a first one, possibly
-  // with no rows); false once every chunk has been built.
-  bool Next(v1::QueryResponse* r);
+  // Writes the next chunk, a serialized QueryResponse, into *bytes (there
+  // is always a first one, possibly with no rows); false once every chunk
+  // has been written. The bytes are those protobuf writes for the message
+  // (tests/server/convert_test.cc), but no message is built: copying the
+  // rows into repeated fields and serializing those took 1.2-2 ms for the
+  // 10K radius rows of kinetri-bench-service, a fifth of the query.
+  bool NextBytes(std::string* bytes);
+  // Whether every chunk has been written.
+  bool done() const { return done_; }
 
  private:
+  // The rows and results of the next chunk.
+  struct Cut {
+    uint64_t rows = 0;
+    uint64_t end = 0;  // one past its last result
+    bool continues = false;
+  };
+  Cut NextCut() const;
+  void Advance(const Cut& cut);
+
   const core::NeighborLists& lists_;
   const uint64_t count_, global_first_, total_rows_, step_;
   const bool distances_;

@@ -1,0 +1,143 @@
+// Query answers cut into response chunks (server/convert.h ChunkCursor):
+// the bytes it writes parse as QueryResponse messages that hold the rows
+// (whole rows while they fit, a longer row split with last_row_continues),
+// and protobuf serializes those messages back to the same bytes.
+#include "server/convert.h"
+
+#include <gtest/gtest.h>
+
+#include <cstdint>
+#include <random>
+#include <string>
+#include <vector>
+
+#include "core/query_types.h"
+#include "kinetri/v1/kinetri.pb.h"
+
+namespace kinetri::server {
+namespace {
+
+// Rows of up to max_row results; ids below id_bound (0: of every varint
+// length up to 5 bytes).
+core::NeighborLists RandomLists(uint64_t rows, uint64_t max_row,
+                                uint32_t id_bound, uint64_t seed) {
+  std::mt19937_64 rng(seed);
+  core::NeighborLists l;
+  l.offsets.push_back(0);
+  for (uint64_t r = 0; r < rows; ++r) {
+    const uint64_t len = rng() % (max_row + 1);
+    for (uint64_t k = 0; k < len; ++k) {
+      const uint32_t id = static_cast<uint32_t>(rng() >> (rng() % 64));
+      l.ids.push_back(id_bound == 0 ? id : id % id_bound);
+      l.distances.push_back(std::ldexp(double(rng() % 1000), -int(rng() % 40)));
+    }
+    l.offsets.push_back(l.ids.size());
+    l.truncated.push_back(rng() % 5 == 0 ? 1 : 0);
+  }
+  return l;
+}
+
+struct Case {
+  uint64_t rows, max_row, rows_per_chunk, results_per_chunk;
+  bool distances, client_ids;
+};
+
+void Check(const Case& c, uint64_t seed) {
+  SCOPED_TRACE(testing::Message()
+               << "rows " << c.rows << " max_row " << c.max_row
+               << " rows_per_chunk " << c.rows_per_chunk
+               << " results_per_chunk " << c.results_per_chunk << " distances "
+               << c.distances << " client " << c.client_ids);
+  const core::NeighborLists l =
+      RandomLists(c.rows, c.max_row, c.client_ids ? 5000 : 0, seed);
+  std::vector<uint64_t> client;
+  if (c.client_ids) {
+    std::mt19937_64 rng(seed + 1);
+    uint32_t most = 0;
+    for (uint32_t id : l.ids) most = std::max(most, id);
+    client.resize(uint64_t{most} + 1);
+    for (uint64_t& x : client) x = rng() >> (rng() % 64);
+  }
+  const uint64_t first = 1000, total = c.rows + 2000, step = seed % 3;
+  ChunkCursor cursor(l, c.rows, first, total, step, c.distances,
+                     c.client_ids ? &client : nullptr, c.rows_per_chunk,
+                     c.results_per_chunk);
+  // Rows put back together from the chunks.
+  std::vector<uint64_t> ids, row_len;
+  std::vector<double> distances;
+  std::vector<uint64_t> truncated;
+  uint64_t row = 0, chunks = 0;
+  bool continuing = false;
+  std::string bytes;
+  while (cursor.NextBytes(&bytes)) {
+    ++chunks;
+    v1::QueryResponse m;
+    ASSERT_TRUE(m.ParseFromString(bytes)) << "chunk " << chunks;
+    std::string again;
+    ASSERT_TRUE(m.SerializeToString(&again));
+    ASSERT_EQ(again, bytes) << "chunk " << chunks;
+    EXPECT_EQ(m.step(), step);
+    EXPECT_EQ(m.total_rows(), total);
+    EXPECT_EQ(m.first_row(), first + row);
+    ASSERT_GE(m.offsets_size(), 1);
+    EXPECT_EQ(m.offsets(0), 0u);
+    const uint64_t results = m.offsets(m.offsets_size() - 1);
+    EXPECT_LE(results, c.results_per_chunk);
+    EXPECT_LE(uint64_t(m.offsets_size() - 1), c.rows_per_chunk);
+    if (c.client_ids) {
+      EXPECT_EQ(m.ids_size(), 0);
+      ASSERT_EQ(uint64_t(m.client_ids_size()), results);
+      ids.insert(ids.end(), m.client_ids().begin(), m.client_ids().end());
+    } else {
+      ASSERT_EQ(uint64_t(m.ids_size()), results);
+      ids.insert(ids.end(), m.ids().begin(), m.ids().end());
+    }
+    ASSERT_EQ(uint64_t(m.distances_size()), c.distances ? results : 0);
+    distances.insert(distances.end(), m.distances().begin(),
+                     m.distances().end());
+    for (uint32_t t : m.truncated_rows()) truncated.push_back(row + t);
+    for (int k = 1; k < m.offsets_size(); ++k) {
+      const uint64_t len = m.offsets(k) - m.offsets(k - 1);
+      if (continuing && k == 1) {
+        row_len.back() += len;
+      } else {
+        row_len.push_back(len);
+      }
+    }
+    continuing = m.last_row_continues();
+    row += m.offsets_size() - 1 - (continuing ? 1 : 0);
+  }
+  EXPECT_FALSE(continuing);
+  EXPECT_GE(chunks, 1u);
+  ASSERT_EQ(row_len.size(), c.rows);
+  std::vector<uint64_t> want_truncated;
+  for (uint64_t r = 0; r < c.rows; ++r) {
+    ASSERT_EQ(row_len[r], l.offsets[r + 1] - l.offsets[r]) << "row " << r;
+    if (l.truncated[r]) want_truncated.push_back(r);
+  }
+  EXPECT_EQ(truncated, want_truncated);
+  ASSERT_EQ(ids.size(), l.ids.size());
+  for (size_t k = 0; k < ids.size(); ++k) {
+    ASSERT_EQ(ids[k], c.client_ids ? client[l.ids[k]] : l.ids[k]);
+  }
+  if (c.distances) {
+    EXPECT_EQ(distances, l.distances);
+  }
+}
+
+TEST(ChunkCursor, BytesAreTheQueryResponsesOfTheRows) {
+  const Case cases[] = {
+      {0, 4, 16, 100, true, false},   // no rows: one empty chunk
+      {1, 0, 16, 100, false, false},  // one empty row
+      {500, 12, 16384, 196608, true, false},
+      {500, 12, 7, 196608, false, false},  // many chunks by rows
+      {300, 40, 1000, 25, true, false},    // rows split across chunks
+      {300, 40, 1000, 25, true, true},     // client ids, split rows
+      {200, 3, 1, 2, true, true},
+  };
+  uint64_t seed = 1;
+  for (const Case& c : cases) Check(c, seed++);
+}
+
+}  // namespace
+}  // namespace kinetri::server
