@@ -4,6 +4,7 @@
 #include <atomic>
 #include <cmath>
 #include <cstdint>
+#include <memory>
 #include <vector>
 
 #include "core/parallel.h"
@@ -226,6 +227,28 @@ HintGrid::HintGrid(const TriangulationView& v) {
         cells_[c] = HintGridView::kRefined | off;
       },
       16);
+}
+
+std::shared_ptr<const HintGrid> HintGrid::Renumbered(
+    absl::FunctionRef<uint32_t(uint32_t)> new_of_old) const {
+  auto out = std::make_shared<HintGrid>(*this);
+  std::vector<uint32_t>& cells = out->cells_;
+  auto map = [&](uint32_t& s) {
+    if (s != kNoVertex) s = new_of_old(s);
+  };
+  map(out->view_.fallback);
+  const size_t main = size_t{view_.side} * view_.side;
+  ParallelFor(0, main, [&](size_t c) {
+    if (!HintGridView::IsRefined(cells[c])) {
+      map(cells[c]);
+      return;
+    }
+    const size_t off = cells[c] & ~HintGridView::kRefined;
+    const size_t n = cells[off];
+    for (size_t k = off + 1; k < off + 1 + n * n; ++k) map(cells[k]);
+  });
+  out->view_.cells = cells.data();
+  return out;
 }
 
 HintGridView HintGrid::view() const {

@@ -11,8 +11,10 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <memory>
 #include <vector>
 
+#include "absl/functional/function_ref.h"
 #include "core/hd.h"
 #include "core/triangulation_view.h"
 #include "core/vec2.h"
@@ -82,6 +84,12 @@ class HintGrid {
   explicit HintGrid(const TriangulationView& v);
   // Valid while this grid lives; `cells` points into host memory.
   HintGridView view() const;
+  // The same grid with every site s replaced by new_of_old(s): for the same
+  // sites renumbered (hints only start walks, so the grid of the previous
+  // numbering, or of positions a little older, still serves). Runs on all
+  // threads.
+  std::shared_ptr<const HintGrid> Renumbered(
+      absl::FunctionRef<uint32_t(uint32_t)> new_of_old) const;
   const std::vector<uint32_t>& cells() const { return cells_; }
 
  private:

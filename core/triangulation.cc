@@ -183,6 +183,12 @@ struct Triangulation::AdjacencyCache {
   std::shared_ptr<const HintGrid> stale_hints;
   uint64_t stale_step = 0;
   uint64_t hints_step = 0;  // when `hints` was built
+  // While a step runs: the grid it may pass on. Rebuild() and Renumber()
+  // renumber its sites with the points (or drop it when points join or
+  // leave); the step sets it as `stale_hints` where it ends with every
+  // point a site of its own.
+  std::shared_ptr<const HintGrid> carried;
+  uint64_t carried_step = 0;
 };
 
 // A hint grid serves at most this many steps after the one it was built
@@ -458,6 +464,13 @@ bool Triangulation::Rebuild(const std::vector<Vec2>& positions_by_ext,
   Mesh mesh = BuildDelaunayInStrips(pos, sites, DefaultStripCount(sites.size()),
                                     cancel, &cancelled);
   if (cancelled || (cancel != nullptr && cancel->Cancelled())) return false;
+  if (n == size()) {
+    RenumberCarriedHints(
+        [&](uint32_t s) { return int_of_ext[ext_of_int_[s]]; });
+  } else {
+    std::lock_guard<std::mutex> lock(adjacency_->mu);
+    adjacency_->carried.reset();
+  }
   ext_of_int_ = std::move(ext_of_int);
   int_of_ext_ = std::move(int_of_ext);
   pos_ = std::move(pos);
@@ -523,12 +536,21 @@ double Triangulation::MeanEdgeSpan() const {
   return acc.count ? acc.sum / static_cast<double>(acc.count) : 0.0;
 }
 
+void Triangulation::RenumberCarriedHints(
+    absl::FunctionRef<uint32_t(uint32_t)> new_of_old) {
+  std::lock_guard<std::mutex> lock(adjacency_->mu);
+  if (adjacency_->carried != nullptr) {
+    adjacency_->carried = adjacency_->carried->Renumbered(new_of_old);
+  }
+}
+
 void Triangulation::Renumber() {
   motion_filter_.Invalidate();
   const uint32_t n = size();
   const std::vector<uint32_t> old_of_new = HilbertOrder(pos_);
   std::vector<uint32_t> new_of_old(n);
   for (uint32_t i = 0; i < n; ++i) new_of_old[old_of_new[i]] = i;
+  RenumberCarriedHints([&](uint32_t s) { return new_of_old[s]; });
   std::vector<Vec2> pos(n);
   std::vector<uint32_t> ext(n), rep(n), dup(n);
   ParallelFor(0, n, [&](size_t i) {
@@ -1542,24 +1564,22 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
     report.num_points = size();
     return report;
   }
-  // The hint grid this step may pass on (set back only where the step ends
-  // with the same ids and sites).
-  std::shared_ptr<const HintGrid> carried_hints;
-  uint64_t carried_step = 0;
   {
     std::lock_guard<std::mutex> lock(adjacency_->mu);
-    adjacency_->valid = false;
-    for (AdjacencyCache::CellsSlot& slot : adjacency_->cells) {
+    AdjacencyCache& cache = *adjacency_;
+    cache.valid = false;
+    for (AdjacencyCache::CellsSlot& slot : cache.cells) {
       slot = AdjacencyCache::CellsSlot{};
     }
-    if (num_sites() == size()) {
-      carried_hints = adjacency_->hints != nullptr ? adjacency_->hints
-                                                   : adjacency_->stale_hints;
-      carried_step = adjacency_->hints != nullptr ? adjacency_->hints_step
-                                                  : adjacency_->stale_step;
+    // The hint grid this step may pass on (see AdjacencyCache::carried).
+    cache.carried.reset();
+    if (num_sites() == size() && !changes) {
+      cache.carried = cache.hints != nullptr ? cache.hints : cache.stale_hints;
+      cache.carried_step =
+          cache.hints != nullptr ? cache.hints_step : cache.stale_step;
     }
-    adjacency_->hints.reset();
-    adjacency_->stale_hints.reset();
+    cache.hints.reset();
+    cache.stale_hints.reset();
   }
 
   // Many points leave or join (or the points lie on a line): the step is
@@ -1677,11 +1697,14 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
   }
   report.num_sites = num_sites();
   report.num_points = size();
-  if (carried_hints != nullptr && !changes && !report.renumbered &&
-      report.path != UpdatePath::kRebuilt && num_sites() == size()) {
+  {
     std::lock_guard<std::mutex> lock(adjacency_->mu);
-    adjacency_->stale_hints = std::move(carried_hints);
-    adjacency_->stale_step = carried_step;
+    AdjacencyCache& cache = *adjacency_;
+    if (cache.carried != nullptr && !changes && num_sites() == size()) {
+      cache.stale_hints = std::move(cache.carried);
+      cache.stale_step = cache.carried_step;
+    }
+    cache.carried.reset();
   }
   report.seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - start)

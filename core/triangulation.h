@@ -47,6 +47,7 @@
 #include <utility>
 #include <vector>
 
+#include "absl/functional/function_ref.h"
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "absl/types/span.h"
@@ -347,6 +348,9 @@ class Triangulation {
   // Smallest external id among the points of the site of vertex v.
   uint32_t SiteId(uint32_t v) const;
   void Renumber();
+  // Renumbers the sites of the hint grid a step carries (Rebuild and
+  // Renumber, before they swap in the new numbering).
+  void RenumberCarriedHints(absl::FunctionRef<uint32_t(uint32_t)> new_of_old);
 
   TriangulationOptions options_;
   std::unique_ptr<tbb::task_arena> arena_;

@@ -173,9 +173,10 @@ TEST(CachedCellIndex, TwoRadiiAndOneNearestPerStep) {
   EXPECT_FALSE(t->HasCachedCellIndex(Use::kNearest, 0.0));
 }
 
-// Position queries' hint grid outlives a few local steps (a hint is only
-// where a walk starts); age, or a step that changes ids or sites, brings a
-// new one. The nearest points stay exact throughout.
+// Position queries' hint grid outlives a few steps (a hint is only where a
+// walk starts), renumbered with the points when a step renumbers them; age,
+// points that join or leave, or coincident points bring a new one. The
+// nearest points stay exact throughout.
 TEST(CachedHintGrid, ServesAFewLocalStepsThenIsBuiltAgain) {
   std::vector<Vec2> pts = testing::UniformPoints(3000, 4);
   auto t = Triangulation::Create(pts);
@@ -222,13 +223,39 @@ TEST(CachedHintGrid, ServesAFewLocalStepsThenIsBuiltAgain) {
   step();
   step();
   EXPECT_EQ(t->CachedHintGrid(), rebuilt);
+  // A step rebuilt from scratch renumbers the points: the grid follows,
+  // each hint the same point under its new internal id.
+  std::vector<uint32_t> old_ext(t->view().ext_of_int,
+                                t->view().ext_of_int + t->size());
+  const HintGridView before = rebuilt->view();
+  {
+    std::vector<Vec2> d(pts.size());
+    std::normal_distribution<double> jump(0.0, 0.05);  // about 3 spacings
+    for (size_t i = 0; i < pts.size(); ++i) {
+      d[i] = {jump(rng), jump(rng)};
+      pts[i] = {pts[i].x + d[i].x, pts[i].y + d[i].y};
+    }
+    auto r = t->ApplyDisplacements(DisplacementBatch::Dense(d));
+    ASSERT_TRUE(r.ok()) << r.status();
+    ASSERT_EQ(r->path, UpdatePath::kRebuilt);
+    ASSERT_TRUE(r->renumbered);
+  }
+  const auto renumbered = t->CachedHintGrid();
+  const HintGridView after = renumbered->view();
+  ASSERT_EQ(after.side, before.side);
+  const uint32_t* new_ext = t->view().ext_of_int;
+  for (size_t c = 0; c < size_t{before.side} * before.side; ++c) {
+    if (HintGridView::IsRefined(before.cells[c])) continue;
+    ASSERT_EQ(new_ext[after.cells[c]], old_ext[before.cells[c]]) << c;
+  }
+  check_nearest();
   // A point joins: ids may change, a new grid.
   DisplacementBatch join;
   join.add = {{0.5, 0.5}};
   ASSERT_TRUE(t->ApplyDisplacements(join).ok());
   pts.push_back({0.5, 0.5});
   const auto after_join = t->CachedHintGrid();
-  EXPECT_NE(after_join, rebuilt);
+  EXPECT_NE(after_join, renumbered);
   check_nearest();
   // Two points coincide: a point is no longer a site of its own.
   DisplacementBatch onto = DisplacementBatch::AbsoluteSparse({1}, {pts[0]});
