@@ -242,7 +242,11 @@ class Triangulation {
   // Whether CachedCellIndex holds a decision for (use, key) in this step.
   bool HasCachedCellIndex(CellIndexUse use, double key) const;
   // The hint grid that starts position queries' walks (core/hint_grid.h),
-  // built on the first call of a step and kept until the next step.
+  // built on the first call of a step. Hints only start walks, so a grid
+  // serves up to 4 steps after the one it was built for (renumbered with
+  // the points when a step renumbers them), while every point is a site
+  // of its own and none joined or left; it may lie a little behind the
+  // positions.
   std::shared_ptr<const HintGrid> CachedHintGrid() const;
   // query_view() when its rows are already built, else view(): for a
   // search that walks each fan once anyway (all-points NN), building the
