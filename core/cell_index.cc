@@ -66,12 +66,6 @@ double CellIndex::EstimateOccupancy(const TriangulationView& v, double cell,
   const double cy = std::floor((box.hi_y - box.lo_y) * inv) + 1.0;
   if (!(cx * cy <= static_cast<double>(max_cells))) return INFINITY;
   const uint32_t nx = static_cast<uint32_t>(cx), ny = static_cast<uint32_t>(cy);
-  auto index = [&](double c, double origin, uint32_t count) {
-    const double t = (c - origin) * inv;
-    if (!(t > 0.0)) return uint32_t{0};
-    if (t >= static_cast<double>(count - 1)) return count - 1;
-    return static_cast<uint32_t>(t);
-  };
   // A site's sampled cell-mates m (itself included): over the samples, the
   // mean of m is about 1 + (occupancy - 1) / every.
   std::vector<uint32_t> count(size_t{nx} * ny, 0);
@@ -80,7 +74,8 @@ double CellIndex::EstimateOccupancy(const TriangulationView& v, double cell,
   cell_of.reserve(v.num_sites / every + 1);
   for (uint32_t i = 0; i < v.num_sites; i += every) {
     const Vec2& p = v.pos[v.sites[i]];
-    const uint32_t c = index(p.y, box.lo_y, ny) * nx + index(p.x, box.lo_x, nx);
+    const uint32_t c =
+        CellOf(p.y, box.lo_y, inv, ny) * nx + CellOf(p.x, box.lo_x, inv, nx);
     ++count[c];
     cell_of.push_back(c);
     ++samples;

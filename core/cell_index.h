@@ -119,7 +119,12 @@ class CellIndex {
 
  private:
   uint32_t Cell(double c, double origin, uint32_t count) const {
-    const double t = (c - origin) * inv_;
+    return CellOf(c, origin, inv_, count);
+  }
+  // The cell (of `count` along an axis from `origin`, 1 / side = inv) of
+  // coordinate c, clamped to the grid.
+  static uint32_t CellOf(double c, double origin, double inv, uint32_t count) {
+    const double t = (c - origin) * inv;
     if (!(t > 0.0)) return 0;
     if (t >= static_cast<double>(count - 1)) return count - 1;
     return static_cast<uint32_t>(t);
