@@ -67,6 +67,30 @@ struct InBounds {
   bool operator()(uint32_t t) const { return b.In(t); }
 };
 
+// After Flip(e) or Unflip(e): every vertex whose vertex_edge (in ve) lay in
+// the two triangles of e and no longer leaves it gets the first half-edge
+// of the two triangles that does (in the order e, Next(e), Prev(e), f,
+// Next(f), Prev(f)). Only entries that point into the two triangles are
+// written, so a region that flips only its own triangles writes only
+// entries that no other region writes, in its own (deterministic) order;
+// other regions read an entry only to find that it is not theirs, and
+// every access is atomic.
+void RepairVertexEdges(const MeshView& m, uint32_t* ve, uint32_t e) {
+  const uint32_t f = m.twin[e];
+  const uint32_t t1 = TriangleOf(e), t2 = TriangleOf(f);
+  const uint32_t hs[6] = {e, Next(e), Prev(e), f, Next(f), Prev(f)};
+  for (uint32_t h : hs) {
+    const uint32_t v = m.origin[h];
+    if (v == kInfiniteVertex) continue;
+    std::atomic_ref<uint32_t> slot(ve[v]);
+    const uint32_t cur = slot.load(std::memory_order_relaxed);
+    const uint32_t ct = TriangleOf(cur);
+    if ((ct == t1 || ct == t2) && m.origin[cur] != v) {
+      slot.store(h, std::memory_order_relaxed);
+    }
+  }
+}
+
 void CountFix(uint32_t kind, FlipCounts* c) {
   switch (kind) {
     case rules::kInteriorFlip:
@@ -87,13 +111,12 @@ void CountFix(uint32_t kind, FlipCounts* c) {
 // flip wait until a flip has happened since they were looked at; what is
 // left in `waiting` at the end is stuck (for this region). Bounded, the
 // fix rule reads only b, and a flip runs only when it writes only b.
-// `mesh` non-null: vertex_edge is kept up to date (bounded: only by flips
-// whose four vertices have their whole stars in b).
+// vertex_edge (ve) is kept valid (RepairVertexEdges).
 template <bool kBounded>
 void FixLoop(const MeshView& m, const Vec2* p, Bounds b,
              std::vector<uint32_t>& stack, std::vector<uint32_t>& waiting,
              std::vector<uint32_t>& deferred, std::vector<uint32_t>* log,
-             FlipCounts* counts, uint8_t* mark, Mesh* mesh) {
+             FlipCounts* counts, uint8_t* mark, uint32_t* ve) {
   while (true) {
     bool progress = false;
     while (!stack.empty()) {
@@ -122,25 +145,13 @@ void FixLoop(const MeshView& m, const Vec2* p, Bounds b,
       if (kBounded) {
         bool inside = true;
         for (uint32_t x : fp) inside = inside && b.In(x);
-        // With vertex-edge updates (mesh non-null), the flip writes the
-        // vertex_edge of its four vertices: their whole stars lie in b, so
-        // no other region writes them.
-        if (inside && mesh != nullptr) {
-          const uint32_t e = prop.edge, f = m.twin[e];
-          for (uint32_t h : {e, f, Prev(e), Prev(f)}) {
-            if (m.origin[h] != kInfiniteVertex && !StarIn(m, h, b)) {
-              inside = false;
-              break;
-            }
-          }
-        }
         if (!inside) {
           deferred.push_back(t);
           continue;
         }
       }
       m.Flip(prop.edge);
-      if (mesh) mesh->UpdateVertexEdgesAfterFlip(prop.edge);
+      RepairVertexEdges(m, ve, prop.edge);
       if (log) log->push_back(prop.edge);
       CountFix(prop.kind, counts);
       if (mark) mark[fp[0]] = mark[fp[1]] = 1;
@@ -153,14 +164,12 @@ void FixLoop(const MeshView& m, const Vec2* p, Bounds b,
 }
 
 // Delaunay flips with a LIFO stack of half-edges inside b (each half-edge's
-// own triangle lies in b).
-// `newly_marked` (optional): the triangles this loop marks that were not
-// marked before; `log` (optional): the flipped half-edges, in order.
-template <bool kBounded, bool kStarChecks = false>
+// own triangle lies in b); vertex_edge (ve) is kept valid
+// (RepairVertexEdges). `log` (optional): the flipped half-edges, in order.
+template <bool kBounded>
 void LegalizeLoop(const MeshView& m, const Vec2* p, Bounds b,
                   std::vector<uint32_t>& stack, std::vector<uint32_t>& deferred,
-                  FlipCounts* counts, uint8_t* mark, Mesh* mesh,
-                  std::vector<uint32_t>* newly_marked = nullptr,
+                  FlipCounts* counts, uint8_t* mark, uint32_t* ve,
                   std::vector<uint32_t>* log = nullptr) {
   while (!stack.empty()) {
     const uint32_t e = stack.back();
@@ -179,23 +188,11 @@ void LegalizeLoop(const MeshView& m, const Vec2* p, Bounds b,
       deferred.push_back(e);
       continue;
     }
-    // With vertex-edge updates in parallel (mesh non-null), every vertex
-    // whose vertex_edge the flip writes has its whole star in b.
-    if (kStarChecks && !(StarIn(m, e, b) && StarIn(m, f, b) &&
-                         StarIn(m, Prev(e), b) && StarIn(m, Prev(f), b))) {
-      deferred.push_back(e);
-      continue;
-    }
     m.Flip(e);
-    if (mesh) mesh->UpdateVertexEdgesAfterFlip(e);
+    RepairVertexEdges(m, ve, e);
     if (log) log->push_back(e);
     ++counts->delaunay;
-    if (mark) {
-      for (uint32_t t : {TriangleOf(e), TriangleOf(f)}) {
-        if (newly_marked && !mark[t]) newly_marked->push_back(t);
-        mark[t] = 1;
-      }
-    }
+    if (mark) mark[TriangleOf(e)] = mark[TriangleOf(f)] = 1;
     stack.push_back(Next(e));
     stack.push_back(Prev(e));
     stack.push_back(Next(f));
@@ -258,10 +255,11 @@ void AppendStarAndHullRing(const Mesh& mesh, uint32_t v,
   AppendStarAndHullRingFrom(mesh.view(), mesh.vertex_edge()[v], out);
 }
 
-void Undo(const MeshView& m, const std::vector<uint32_t>& log, Mesh* mesh) {
+// Unflips the logged flips, newest first, keeping vertex_edge (ve) valid.
+void Undo(const MeshView& m, const std::vector<uint32_t>& log, uint32_t* ve) {
   for (auto it = log.rbegin(); it != log.rend(); ++it) {
     m.Unflip(*it);
-    if (mesh) mesh->UpdateVertexEdgesAfterFlip(*it);
+    RepairVertexEdges(m, ve, *it);
   }
 }
 
@@ -470,6 +468,7 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
                               RegionStepStats* stats, std::string* reason) {
   (void)moved;
   const MeshView m = mesh.view();
+  uint32_t* ve = mesh.mutable_vertex_edge().data();
   const uint32_t rt = policy.region_triangles;
   const uint32_t nt = mesh.num_triangles();
   Region serial;
@@ -490,13 +489,13 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
                                              nt, (r + 1) * size_t{rt}))};
                           FixLoop<true>(m, p, b, g.stack, g.waiting, g.deferred,
                                         &g.log, &g.counts, tri_mark_.data(),
-                                        nullptr);
+                                        ve);
                         }
                       });
     if (Cancelled()) {
       // Back to the mesh of `from` (regions are independent: any order).
       for (auto it = regions_.rbegin(); it != regions_.rend(); ++it) {
-        Undo(m, it->log, nullptr);
+        Undo(m, it->log, ve);
       }
       *reason = "cancelled";
       return false;
@@ -512,7 +511,7 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
     }
     FixLoop<false>(m, p, Bounds{}, serial.stack, serial.waiting,
                    serial.deferred, &serial.log, &serial.counts,
-                   tri_mark_.data(), nullptr);
+                   tri_mark_.data(), ve);
     // Stuck triangles, or a hull that winds twice: hold their culprits
     // (the moving hull vertices) where the mesh is now and go on fixing
     // around them (serially; they are few), instead of undoing the pass.
@@ -548,7 +547,7 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
       }
       FixLoop<false>(m, p, Bounds{}, serial.stack, serial.waiting,
                      serial.deferred, &serial.log, &serial.counts,
-                     tri_mark_.data(), nullptr);
+                     tri_mark_.data(), ve);
     }
     const bool stuck = !serial.waiting.empty();
     if (!stuck && HullWindsOnceFrom(mesh, cur_, &hull_hint_)) {
@@ -578,12 +577,12 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
         }
       }
     }
-    Undo(m, serial.log, nullptr);
+    Undo(m, serial.log, ve);
     for (auto it = regions_.rbegin(); it != regions_.rend(); ++it) {
-      Undo(m, it->log, nullptr);
+      Undo(m, it->log, ve);
     }
     // Hold the culprits; if they are all held already, their moving
-    // neighbours too (in the restored mesh, where vertex_edge is valid).
+    // neighbours too (in the restored mesh).
     bool held_any = false;
     for (int widen = 0; widen < 2 && !held_any; ++widen) {
       if (widen == 1) {
@@ -631,11 +630,12 @@ bool RegionExecutor::MoveHeldInRegion(
     uint32_t lo, uint32_t hi, RegionStepStats* stats,
     std::vector<uint32_t>* late_edges, std::vector<uint32_t>* kept) {
   const MeshView m = mesh.view();
+  uint32_t* ve = mesh.mutable_vertex_edge().data();
   const Bounds b{lo, hi};
   thread_local std::vector<uint32_t> around, stack, waiting, deferred, log;
   // Only this region writes v's vertex_edge while v's star lies in it.
-  const uint32_t e0 = std::atomic_ref<uint32_t>(mesh.mutable_vertex_edge()[v])
-                          .load(std::memory_order_relaxed);
+  const uint32_t e0 =
+      std::atomic_ref<uint32_t>(ve[v]).load(std::memory_order_relaxed);
   if (e0 == kNoEdge || !b.In(TriangleOf(e0)) || !StarIn(m, e0, b)) {
     return false;
   }
@@ -662,10 +662,10 @@ bool RegionExecutor::MoveHeldInRegion(
     log.clear();
     FlipCounts c;
     FixLoop<true>(m, p, b, stack, waiting, deferred, &log, &c, tri_mark_.data(),
-                  &mesh);
+                  ve);
     if (!deferred.empty() || c.hull_absorb + c.hull_release > 0) {
       // Reaches out of the region or changes the hull: the serial pass.
-      Undo(m, log, &mesh);
+      Undo(m, log, ve);
       cur_[v] = old;
       stats->flips += counts;
       return false;
@@ -675,8 +675,8 @@ bool RegionExecutor::MoveHeldInRegion(
       kept->insert(kept->end(), log.begin(), log.end());
       SeedLegalizeAfterMove(m, mesh.vertex_edge()[v], log, &around, &stack);
       // Edges that cross the region are legalized in the serial pass.
-      LegalizeLoop<true, true>(m, p, b, stack, *late_edges, &counts,
-                               tri_mark_.data(), &mesh, nullptr, kept);
+      LegalizeLoop<true>(m, p, b, stack, *late_edges, &counts, tri_mark_.data(),
+                         ve, kept);
       if (goal == target) {
         stats->flips += counts;
         return true;
@@ -684,7 +684,7 @@ bool RegionExecutor::MoveHeldInRegion(
       goal = target;
       continue;
     }
-    Undo(m, log, &mesh);
+    Undo(m, log, ve);
     cur_[v] = old;
     if (!Bisect(old, policy, &goal, &halvings, stats)) {
       stats->flips += counts;
@@ -698,6 +698,7 @@ bool RegionExecutor::MoveHeld(Mesh& mesh, uint32_t v, const Vec2& target,
                               RegionStepStats* stats,
                               std::vector<uint32_t>* kept) {
   const MeshView m = mesh.view();
+  uint32_t* ve = mesh.mutable_vertex_edge().data();
   std::vector<uint32_t> around, stack, waiting, deferred, log;
   FlipCounts counts;
   Vec2 goal = target;
@@ -718,7 +719,7 @@ bool RegionExecutor::MoveHeld(Mesh& mesh, uint32_t v, const Vec2& target,
     log.clear();
     FlipCounts c;
     FixLoop<false>(m, p, Bounds{}, stack, waiting, deferred, &log, &c,
-                   tri_mark_.data(), &mesh);
+                   tri_mark_.data(), ve);
     const bool hull_changed = c.hull_absorb + c.hull_release > 0;
     const bool ok =
         waiting.empty() && (!(hull_near || hull_changed) ||
@@ -729,7 +730,7 @@ bool RegionExecutor::MoveHeld(Mesh& mesh, uint32_t v, const Vec2& target,
       // Legalize around v and wherever fixing flipped.
       SeedLegalizeAfterMove(m, mesh.vertex_edge()[v], log, &around, &stack);
       LegalizeLoop<false>(m, p, Bounds{}, stack, deferred, &counts,
-                          tri_mark_.data(), &mesh, nullptr, kept);
+                          tri_mark_.data(), ve, kept);
       if (goal == target) {
         stats->flips += counts;
         return true;
@@ -737,7 +738,7 @@ bool RegionExecutor::MoveHeld(Mesh& mesh, uint32_t v, const Vec2& target,
       goal = target;
       continue;
     }
-    Undo(m, log, &mesh);
+    Undo(m, log, ve);
     cur_[v] = old;
     if (!Bisect(old, policy, &goal, &halvings, stats)) {
       stats->flips += counts;
@@ -756,10 +757,10 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
                           const CancelToken* cancel) {
   auto t0 = std::chrono::steady_clock::now();
   cancel_ = cancel;
-  // A stop before the vertex_edge refresh of legalizing (`refreshed`)
-  // undoes flips only; after it, vertex_edge is recomputed too.
-  auto stop = [&](bool refreshed) {
-    if (refreshed) UndoStep(mesh, true);
+  // A stop once fixing began undoes every flip (and vertex_edge change) of
+  // the step; before it, nothing changed.
+  auto stop = [&](bool changed) {
+    if (changed) UndoStep(mesh);
     stats->cancelled = true;
     *reason = "cancelled";
     return false;
@@ -958,36 +959,38 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
   t0 = std::chrono::steady_clock::now();
 
   // 4. Legalize: the illegal edges of the scan plus every edge of a triangle
-  //    that changed (flips, held vertices, sparse motion).
+  //    that changed (flips, held vertices, sparse motion). vertex_edge stays
+  //    valid throughout (RepairVertexEdges).
   {
     const Vec2* p = cur_.data();
+    uint32_t* ve = mesh.mutable_vertex_edge().data();
     for_each_region([&](size_t r, uint32_t lo, uint32_t hi) {
       Region& g = regions_[r];
       g.ClearWork();  // before the poll: a stop undoes every log
       if (Cancelled()) return;
       g.stack.assign(g.illegal.rbegin(), g.illegal.rend());
-      for (uint32_t t = hi; t-- > lo;) {
-        if (!tri_mark_[t]) continue;
+      const uint8_t* mark = tri_mark_.data();
+      uint32_t t = hi;
+      while (t > lo) {
+        // Eight unmarked slots at once (most are).
+        if (t % 8 == 0 && t - 8 >= lo) {
+          uint64_t word;
+          std::memcpy(&word, mark + t - 8, 8);
+          if (word == 0) {
+            t -= 8;
+            continue;
+          }
+        }
+        --t;
+        if (!mark[t]) continue;
         for (uint32_t e = 3 * t + 3; e-- > 3 * t;) g.stack.push_back(e);
       }
       LegalizeLoop<true>(m, p, Bounds{lo, hi}, g.stack, g.deferred, &g.counts,
-                         tri_mark_.data(), nullptr, nullptr, &g.log);
-      // The region's changed triangles, listed while its slots are in cache.
-      g.marked.clear();
-      for (uint32_t t = lo; t < hi; ++t) {
-        if (tri_mark_[t]) g.marked.push_back(t);
-      }
+                         tri_mark_.data(), ve, &g.log);
     });
-    if (Cancelled()) {
-      // Stopped before any vertex_edge changed: every flip of the step is
-      // in a log, undone in reverse (legalizing, the serial fix, the
-      // regions' fix) back to the mesh of `from`.
-      UndoStep(mesh, false);
-      return stop(false);
-    }
+    if (Cancelled()) return stop(true);
     Region& serial = serial_;
     serial.ClearWork();
-    serial.marked.clear();
     for (Region& g : regions_) {
       serial.stack.insert(serial.stack.end(), g.deferred.rbegin(),
                           g.deferred.rend());
@@ -995,46 +998,9 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
       stats->flips += g.counts;
     }
     LegalizeLoop<false>(m, p, Bounds{}, serial.stack, serial.deferred,
-                        &serial.counts, tri_mark_.data(), nullptr,
-                        &serial.marked, &serial.log);
+                        &serial.counts, tri_mark_.data(), ve, &serial.log);
     stats->flips += serial.counts;
     ++stats->flips.legalize_rounds;
-  }
-  // vertex_edge of every vertex of a changed triangle: the smallest of its
-  // half-edges in changed triangles (deterministic; every vertex of a
-  // flipped quad keeps a half-edge in a flipped triangle). From the lists
-  // of changed triangles, not a pass over every slot: their slots are
-  // scattered, so they are prefetched, and the second pass reads the
-  // (vertex, half-edge) pairs the first one wrote.
-  {
-    uint32_t* ve = mesh.mutable_vertex_edge().data();
-    auto for_each_list = [&](auto&& fn) {
-      tbb::parallel_for(tbb::blocked_range<size_t>(0, num_regions + 1, 1),
-                        [&](const tbb::blocked_range<size_t>& range) {
-                          for (size_t r = range.begin(); r != range.end();
-                               ++r) {
-                            fn(r < num_regions ? regions_[r] : serial_);
-                          }
-                        });
-    };
-    for_each_list([&](Region& g) {
-      g.owners.clear();
-      const size_t k = g.marked.size();
-      for (size_t i = 0; i < k; ++i) {
-        if (i + 16 < k) __builtin_prefetch(&m.origin[3 * g.marked[i + 16]]);
-        const uint32_t t = g.marked[i];
-        for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
-          const uint32_t v = m.origin[e];
-          if (v >= n) continue;
-          std::atomic_ref<uint32_t>(ve[v]).store(kNoEdge,
-                                                 std::memory_order_relaxed);
-          g.owners.push_back({v, e});
-        }
-      }
-    });
-    for_each_list([&](Region& g) {
-      for (const auto& [v, e] : g.owners) AtomicMin(&ve[v], e);
-    });
   }
   stats->legalize_seconds += SecondsSince(t0);
   t0 = std::chrono::steady_clock::now();
@@ -1085,7 +1051,8 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
     std::vector<uint32_t> unused;
     FlipCounts c;
     LegalizeLoop<false>(m, cur_.data(), Bounds{}, late, unused, &c,
-                        tri_mark_.data(), &mesh, nullptr, &held_log_);
+                        tri_mark_.data(), mesh.mutable_vertex_edge().data(),
+                        &held_log_);
     stats->flips += c;
     stats->held_serial = static_cast<uint32_t>(left.size());
   }
@@ -1100,7 +1067,7 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
     const uint32_t hint = mesh.view().Dest(e);
     if (!RemoveHeld(mesh, v, stats)) {
       *reason = "could not remove a vertex for re-insertion";
-      UndoStep(mesh, true);
+      UndoStep(mesh);
       removed->clear();
       stats->held_seconds += SecondsSince(t0);
       return false;
@@ -1143,8 +1110,9 @@ bool RegionExecutor::RemoveHeld(Mesh& mesh, uint32_t v,
   return true;
 }
 
-void RegionExecutor::UndoStep(Mesh& mesh, bool vertex_edges_changed) {
+void RegionExecutor::UndoStep(Mesh& mesh) {
   const MeshView m = mesh.view();
+  uint32_t* ve = mesh.mutable_vertex_edge().data();
   // The serial held moves and removals, newest first.
   size_t end = held_log_.size();
   for (size_t r = removals_.size() + 1; r-- > 0;) {
@@ -1172,19 +1140,20 @@ void RegionExecutor::UndoStep(Mesh& mesh, bool vertex_edges_changed) {
     tbb::parallel_for(tbb::blocked_range<size_t>(0, regions_.size(), 1),
                       [&](const tbb::blocked_range<size_t>& range) {
                         for (size_t r = range.begin(); r != range.end(); ++r) {
-                          Undo(m, regions_[r].*log, nullptr);
+                          Undo(m, regions_[r].*log, ve);
                         }
                       });
   };
   undo_regions(&Region::held_log);
-  Undo(m, serial_.log, nullptr);
+  Undo(m, serial_.log, ve);
   undo_regions(&Region::log);
-  Undo(m, fix_serial_log_, nullptr);
+  Undo(m, fix_serial_log_, ve);
   undo_regions(&Region::fix_log);
   held_log_.clear();
   removals_.clear();
   saved_.clear();
-  if (vertex_edges_changed) mesh.RebuildVertexEdges();
+  // The restored removals' stars.
+  mesh.RebuildVertexEdges();
 }
 
 bool RegionExecutor::FixSerial(Mesh& mesh, const std::vector<Vec2>& pos,
@@ -1200,7 +1169,7 @@ bool RegionExecutor::FixSerial(Mesh& mesh, const std::vector<Vec2>& pos,
   std::vector<uint32_t>* lg = log ? log : &own_log;
   const size_t log_begin = lg->size();
   FixLoop<false>(m, pos.data(), Bounds{}, stack, waiting, deferred, lg, &c,
-                 nullptr, &mesh);
+                 nullptr, mesh.mutable_vertex_edge().data());
   if (counts) *counts += c;
   if (touched) {
     for (size_t i = log_begin; i < lg->size(); ++i) {
@@ -1228,7 +1197,7 @@ void RegionExecutor::LegalizeSerial(Mesh& mesh, const std::vector<Vec2>& pos,
   }
   FlipCounts c;
   LegalizeLoop<false>(m, pos.data(), Bounds{}, stack, deferred, &c, nullptr,
-                      &mesh, nullptr, log);
+                      mesh.mutable_vertex_edge().data(), log);
   if (counts) *counts += c;
 }
 

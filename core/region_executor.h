@@ -154,9 +154,6 @@ class RegionExecutor {
     std::vector<uint32_t> fix_log;
     // The region's flips while moving held vertices (kept: undone on stop).
     std::vector<uint32_t> held_log;
-    std::vector<uint32_t> marked;  // changed triangles (legalizing)
-    // (vertex, half-edge leaving it) of the changed triangles.
-    std::vector<std::pair<uint32_t, uint32_t>> owners;
     // (vertex, half-edge leaving it) held back by the region.
     std::vector<std::pair<uint32_t, uint32_t>> holds;
     FlipCounts counts;
@@ -200,10 +197,9 @@ class RegionExecutor {
   // they were and logging the flips in held_log_.
   bool RemoveHeld(Mesh& mesh, uint32_t v, RegionStepStats* stats);
   // Undoes everything the step did to the mesh, in reverse: the held
-  // vertices' flips and removals, legalizing, fixing. With
-  // `vertex_edges_changed` (from legalizing's vertex_edge refresh on),
-  // vertex_edge is recomputed afterwards.
-  void UndoStep(Mesh& mesh, bool vertex_edges_changed);
+  // vertices' flips and removals, legalizing, fixing; vertex_edge is
+  // recomputed afterwards.
+  void UndoStep(Mesh& mesh);
 
   // The token fired (polled at most once per region or held vertex).
   bool Cancelled() const { return cancel_ != nullptr && cancel_->Cancelled(); }

@@ -306,13 +306,19 @@ TEST(Kinetic, ResultIndependentOfThreadCount) {
     EXPECT_EQ(ra->flips.delaunay, rb->flips.delaunay);
     EXPECT_EQ(ra->flips.interior_fix, rb->flips.interior_fix);
     EXPECT_EQ(ra->flips.legalize_rounds, rb->flips.legalize_rounds);
-    // Same mesh down to the numbering of half-edges.
+    // Same mesh down to the numbering of half-edges, and the same half-edge
+    // leaving each vertex (regions keep vertex_edge up to date in parallel
+    // and must do so in an order that does not depend on the threads).
     const TriangulationView va = a->view(), vb = b->view();
     ASSERT_EQ(va.mesh.num_half_edges, vb.mesh.num_half_edges);
     for (uint32_t e = 0; e < va.mesh.num_half_edges; ++e) {
       ASSERT_EQ(va.mesh.origin[e], vb.mesh.origin[e]) << "step " << s;
       ASSERT_EQ(va.mesh.twin[e], vb.mesh.twin[e]) << "step " << s;
     }
+    for (uint32_t v = 0; v < n; ++v) {
+      ASSERT_EQ(va.vertex_edge[v], vb.vertex_edge[v]) << "step " << s;
+    }
+    EXPECT_TRUE(b->Validate().ok());
   }
 }
 
