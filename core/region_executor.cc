@@ -961,9 +961,27 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
   // 4. Legalize: the illegal edges of the scan plus every edge of a triangle
   //    that changed (flips, held vertices, sparse motion). vertex_edge stays
   //    valid throughout (RepairVertexEdges).
+  // 5. Held vertices move alone: each region moves those whose star it
+  //    holds right after legalizing (its slots still in cache), when
+  //    everything the move touches stays in the region; the edges that
+  //    leave it join the serial pass of legalizing. Then, serially, the
+  //    rest (near the hull, across regions, stuck); the ones that cannot
+  //    move are removed.
+  stats->held = static_cast<uint32_t>(held_list_.size());
+  std::vector<uint32_t> left;
+  std::vector<RegionStepStats> rstats(num_regions);
   {
     const Vec2* p = cur_.data();
     uint32_t* ve = mesh.mutable_vertex_edge().data();
+    for (Region& g : regions_) g.held.clear();
+    for (uint32_t v : held_list_) {
+      const uint32_t e = ve[v];
+      if (e == kNoEdge) {
+        left.push_back(v);
+      } else {
+        regions_[TriangleOf(e) / rt].held.push_back(v);
+      }
+    }
     for_each_region([&](size_t r, uint32_t lo, uint32_t hi) {
       Region& g = regions_[r];
       g.ClearWork();  // before the poll: a stop undoes every log
@@ -987,50 +1005,7 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
       }
       LegalizeLoop<true>(m, p, Bounds{lo, hi}, g.stack, g.deferred, &g.counts,
                          tri_mark_.data(), ve, &g.log);
-    });
-    if (Cancelled()) return stop(true);
-    Region& serial = serial_;
-    serial.ClearWork();
-    for (Region& g : regions_) {
-      serial.stack.insert(serial.stack.end(), g.deferred.rbegin(),
-                          g.deferred.rend());
-      stats->deferred += static_cast<uint32_t>(g.deferred.size());
-      stats->flips += g.counts;
-    }
-    LegalizeLoop<false>(m, p, Bounds{}, serial.stack, serial.deferred,
-                        &serial.counts, tri_mark_.data(), ve, &serial.log);
-    stats->flips += serial.counts;
-    ++stats->flips.legalize_rounds;
-  }
-  stats->legalize_seconds += SecondsSince(t0);
-  t0 = std::chrono::steady_clock::now();
-
-  // 5. Held vertices move alone: first, in parallel, each in the region
-  //    holding its star when everything its move touches stays there; then
-  //    serially the rest (near the hull, across regions, stuck); the ones
-  //    that cannot move are removed.
-  stats->held = static_cast<uint32_t>(held_list_.size());
-  if (Cancelled()) return stop(true);
-  std::vector<uint32_t> left;
-  {
-    for (Region& g : regions_) {
-      g.stack.clear();
-      g.waiting.clear();
-      g.deferred.clear();
-    }
-    const uint32_t* ve = mesh.vertex_edge().data();
-    for (uint32_t v : held_list_) {
-      const uint32_t e = ve[v];
-      if (e == kNoEdge) {
-        left.push_back(v);
-      } else {
-        regions_[TriangleOf(e) / rt].stack.push_back(v);
-      }
-    }
-    std::vector<RegionStepStats> rstats(num_regions);
-    for_each_region([&](size_t r, uint32_t lo, uint32_t hi) {
-      Region& g = regions_[r];
-      for (uint32_t v : g.stack) {
+      for (uint32_t v : g.held) {
         if (Cancelled() ||
             !MoveHeldInRegion(mesh, v, to[v], pol, lo, hi, &rstats[r],
                               &g.deferred, &g.held_log)) {
@@ -1039,23 +1014,27 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
       }
     });
     if (Cancelled()) return stop(true);
-    std::vector<uint32_t> late;
+    Region& serial = serial_;
+    serial.ClearWork();
     for (size_t r = 0; r < num_regions; ++r) {
+      Region& g = regions_[r];
+      serial.stack.insert(serial.stack.end(), g.deferred.rbegin(),
+                          g.deferred.rend());
+      stats->deferred += static_cast<uint32_t>(g.deferred.size());
+      stats->flips += g.counts;
       stats->flips += rstats[r].flips;
       stats->halvings += rstats[r].halvings;
-      late.insert(late.end(), regions_[r].deferred.begin(),
-                  regions_[r].deferred.end());
-      left.insert(left.end(), regions_[r].waiting.begin(),
-                  regions_[r].waiting.end());
+      left.insert(left.end(), g.waiting.begin(), g.waiting.end());
     }
-    std::vector<uint32_t> unused;
-    FlipCounts c;
-    LegalizeLoop<false>(m, cur_.data(), Bounds{}, late, unused, &c,
-                        tri_mark_.data(), mesh.mutable_vertex_edge().data(),
-                        &held_log_);
-    stats->flips += c;
+    LegalizeLoop<false>(m, p, Bounds{}, serial.stack, serial.deferred,
+                        &serial.counts, tri_mark_.data(), ve, &serial.log);
+    stats->flips += serial.counts;
+    ++stats->flips.legalize_rounds;
     stats->held_serial = static_cast<uint32_t>(left.size());
   }
+  stats->legalize_seconds += SecondsSince(t0);
+  t0 = std::chrono::steady_clock::now();
+  if (Cancelled()) return stop(true);
   for (size_t i = 0; i < left.size(); ++i) {
     if (i % 16 == 15 && Cancelled()) {
       stats->held_seconds += SecondsSince(t0);
@@ -1133,22 +1112,24 @@ void RegionExecutor::UndoStep(Mesh& mesh) {
     }
     mesh.TakeBackFreed(rm.free_slots);
   }
-  // The regions' held moves, legalizing (the serial pass, then the
-  // regions'), fixing (the serial pass, then the regions'). The regions'
-  // flips lie in their own slots, so they are undone in parallel.
-  auto undo_regions = [&](std::vector<uint32_t> Region::*log) {
+  // Legalizing's serial pass; each region's held moves and legalizing;
+  // fixing (the serial pass, then the regions'). The regions' flips lie in
+  // their own slots, so they are undone in parallel.
+  auto undo_regions = [&](auto&& undo) {
     tbb::parallel_for(tbb::blocked_range<size_t>(0, regions_.size(), 1),
                       [&](const tbb::blocked_range<size_t>& range) {
                         for (size_t r = range.begin(); r != range.end(); ++r) {
-                          Undo(m, regions_[r].*log, ve);
+                          undo(regions_[r]);
                         }
                       });
   };
-  undo_regions(&Region::held_log);
   Undo(m, serial_.log, ve);
-  undo_regions(&Region::log);
+  undo_regions([&](const Region& g) {
+    Undo(m, g.held_log, ve);
+    Undo(m, g.log, ve);
+  });
   Undo(m, fix_serial_log_, ve);
-  undo_regions(&Region::fix_log);
+  undo_regions([&](const Region& g) { Undo(m, g.fix_log, ve); });
   held_log_.clear();
   removals_.clear();
   saved_.clear();

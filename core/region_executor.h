@@ -21,7 +21,9 @@
 //   3. fix by regions, then the serial pass; a hull that winds twice or a
 //      triangle still stuck undoes the flips, holds the stuck triangles'
 //      moving vertices too and repeats (rare);
-//   4. legalize by regions, then the serial pass;
+//   4. legalize by regions; each region then moves the held vertices whose
+//      stars it holds (step 5, while its slots are in cache); then the
+//      serial pass of legalizing;
 //   5. every held vertex moves alone: fix + legalize around it; if that gets
 //      stuck, its motion is bisected (up to max_halvings times); if that
 //      fails too it is removed and returned to the caller for re-insertion.
@@ -86,8 +88,8 @@ struct RegionStepStats {
   uint32_t deferred = 0;      // elements left to the serial pass
   double scan_seconds = 0.0;
   double fix_seconds = 0.0;
-  double legalize_seconds = 0.0;
-  double held_seconds = 0.0;
+  double legalize_seconds = 0.0;  // with the held vertices regions move
+  double held_seconds = 0.0;      // the held vertices of the serial pass
   // The step stopped because its cancellation token fired. A step that
   // stops or fails leaves the mesh exactly as it was, whatever phase it is
   // in: every flip and vertex removal it made is logged and undone.
@@ -154,6 +156,7 @@ class RegionExecutor {
     std::vector<uint32_t> fix_log;
     // The region's flips while moving held vertices (kept: undone on stop).
     std::vector<uint32_t> held_log;
+    std::vector<uint32_t> held;  // held vertices whose vertex_edge lies here
     // (vertex, half-edge leaving it) held back by the region.
     std::vector<std::pair<uint32_t, uint32_t>> holds;
     FlipCounts counts;

@@ -145,7 +145,9 @@ struct StepReport {
   double legalize_seconds = 0.0;
   double reinsert_seconds = 0.0;
   double scan_seconds = 0.0;    // region executor: scan and hold-back
-  double held_seconds = 0.0;    // region executor: held vertices moved alone
+  // Region executor: held vertices moved alone in the serial pass (those
+  // moved by regions count in legalize_seconds).
+  double held_seconds = 0.0;
   double filter_seconds = 0.0;  // vertex tolerances: checks and upkeep
   // Device executor: host<->device copies (included in fix/legalize time
   // of nothing else) and their volume.
