@@ -427,42 +427,6 @@ void RegionExecutor::HoldCulpritsIn(
   }
 }
 
-// Hold-back of the culprits of `queue` (triangles no flip repairs): each
-// region in parallel, then serially what crossed a region boundary.
-void RegionExecutor::HoldCulpritsInRegions(const Mesh& mesh,
-                                           const std::vector<uint32_t>& queue,
-                                           uint32_t rt) {
-  const MeshView m = mesh.view();
-  const uint32_t nt = mesh.num_triangles();
-  for (Region& g : regions_) {
-    g.stack.clear();
-    g.deferred.clear();
-    g.holds.clear();
-  }
-  for (uint32_t t : queue) regions_[t / rt].stack.push_back(t);
-  tbb::parallel_for(
-      tbb::blocked_range<size_t>(0, regions_.size(), 1),
-      [&](const tbb::blocked_range<size_t>& range) {
-        for (size_t r = range.begin(); r != range.end(); ++r) {
-          Region& g = regions_[r];
-          if (g.stack.empty()) continue;
-          const Bounds b{static_cast<uint32_t>(r * rt),
-                         static_cast<uint32_t>(
-                             std::min<size_t>(nt, (r + 1) * size_t{rt}))};
-          HoldCulpritsIn<true>(m, b, g.stack, &g.deferred, &g.holds);
-        }
-      });
-  std::vector<uint32_t> rest;
-  for (Region& g : regions_) {
-    for (const auto& [v, e] : g.holds) {
-      held_list_.push_back(v);
-      held_edge_.push_back(e);
-    }
-    rest.insert(rest.end(), g.deferred.begin(), g.deferred.end());
-  }
-  HoldCulprits(mesh, std::move(rest));
-}
-
 bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
                               const RegionStepPolicy& policy,
                               RegionStepStats* stats, std::string* reason) {
@@ -841,6 +805,44 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
       return false;
     }
   }
+  // 2. (run after the scan below) Hold back the culprits of the triangles
+  //    no flip can repair: each region decides and holds what it can by
+  //    itself (core/flip_rules.h's bounded proposal; vertices whose star it
+  //    holds), the rest is done serially afterwards. The held vertices'
+  //    stars are repaired again.
+  std::vector<uint32_t> hopeless_in(num_regions, 0);
+  auto hold_back = [&](size_t r, uint32_t lo, uint32_t hi) {
+    Region& g = regions_[r];
+    const Bounds b{lo, hi};
+    const Vec2* p = cur_.data();
+    g.stack.clear();
+    g.waiting.clear();
+    g.deferred.clear();
+    g.holds.clear();
+    for (uint32_t t : g.invalid) {
+      bool outside = false;
+      const rules::FixProposal prop =
+          rules::ProposeFixFlip(m, p, t, InBounds{b}, &outside);
+      if (outside) {
+        g.waiting.push_back(t);  // decided serially
+      } else if (prop.edge == kNoEdge) {
+        g.stack.push_back(t);
+      }
+    }
+    hopeless_in[r] = static_cast<uint32_t>(g.stack.size());
+    if (g.stack.empty()) return;
+    HoldCulpritsIn<true>(m, b, g.stack, &g.deferred, &g.holds);
+    // A held vertex's star lies in the region, off the hull.
+    std::vector<uint32_t> around;
+    for (const auto& [v, e] : g.holds) {
+      around.clear();
+      AppendStarFrom(m, e, &around);
+      for (uint32_t t : around) {
+        tri_mark_[t] = 1;
+        g.invalid.push_back(t);
+      }
+    }
+  };
   if (dense) {
     const Vec2* p = cur_.data();
     for_each_region([&](size_t r, uint32_t lo, uint32_t hi) {
@@ -875,74 +877,51 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
     });
   }
   if (Cancelled()) return stop(false);
-  // 2. Hold back the culprits of triangles no flip can repair.
+  // After every region's scan: a scan reads the positions of apexes
+  // across its boundary, which holding back may change.
+  for_each_region(hold_back);
   {
-    std::vector<uint32_t> all_invalid;
-    for (const Region& g : regions_) {
-      all_invalid.insert(all_invalid.end(), g.invalid.begin(), g.invalid.end());
-    }
-    std::vector<uint8_t> hopeless(all_invalid.size(), 0);
+    // What regions left: triangles whose repair reads other regions
+    // (decided here), and hopeless ones a region could not hold back.
     const Vec2* p = cur_.data();
-    ParallelFor(
-        0, all_invalid.size(),
-        [&](size_t i) {
-          hopeless[i] =
-              rules::ProposeFixFlip(m, p, all_invalid[i]).edge == kNoEdge;
-        },
-        256);
-    std::vector<uint32_t> queue;
-    for (size_t i = 0; i < all_invalid.size(); ++i) {
-      if (hopeless[i]) queue.push_back(all_invalid[i]);
+    uint64_t hopeless = 0;
+    std::vector<uint32_t> rest;
+    for (size_t r = 0; r < num_regions; ++r) {
+      const Region& g = regions_[r];
+      hopeless += hopeless_in[r];
+      rest.insert(rest.end(), g.deferred.begin(), g.deferred.end());
+      for (uint32_t t : g.waiting) {
+        if (rules::ProposeFixFlip(m, p, t).edge == kNoEdge) {
+          rest.push_back(t);
+          ++hopeless;
+        }
+      }
     }
-    const double local_cost = policy.held_vertex_cost * double(queue.size());
+    const double local_cost = policy.held_vertex_cost * double(hopeless);
     if (policy.held_vertex_cost > 0 && local_cost > rebuild_cost) {
-      *reason = absl::StrCat(
-          queue.size(), " triangles cannot be repaired by flips (",
-          static_cast<int>(100.0 * queue.size() / std::max(1u, nt)),
-          "% of all): rebuilding is cheaper");
+      *reason =
+          absl::StrCat(hopeless, " triangles cannot be repaired by flips (",
+                       static_cast<int>(100.0 * hopeless / std::max(1u, nt)),
+                       "% of all): rebuilding is cheaper");
       stats->scan_seconds += SecondsSince(t0);
       return false;
     }
-    HoldCulpritsInRegions(mesh, queue, rt);
-    // The stars (and hull rings) of the held vertices are fixed again:
-    // marked by all threads, then listed by each region in slot order
-    // (the order of a sorted list, for any thread count).
-    if (!held_list_.empty()) {
-      around_mark_.resize(nt, 0);  // all zero between steps
-      uint8_t* am = around_mark_.data();
-      tbb::parallel_for(tbb::blocked_range<size_t>(0, held_list_.size(), 256),
-                        [&](const tbb::blocked_range<size_t>& range) {
-                          std::vector<uint32_t> around;
-                          for (size_t i = range.begin(); i != range.end();
-                               ++i) {
-                            around.clear();
-                            AppendStarAndHullRing(mesh, held_list_[i], &around);
-                            for (uint32_t t : around) {
-                              std::atomic_ref<uint8_t>(am[t]).store(
-                                  1, std::memory_order_relaxed);
-                            }
-                          }
-                        });
-      for_each_region([&](size_t r, uint32_t lo, uint32_t hi) {
-        Region& g = regions_[r];
-        uint32_t t = lo;
-        while (t < hi) {
-          if (t % 8 == 0 && t + 8 <= hi) {
-            uint64_t word;
-            std::memcpy(&word, am + t, 8);
-            if (word == 0) {
-              t += 8;
-              continue;
-            }
-          }
-          if (am[t]) {
-            am[t] = 0;
-            tri_mark_[t] = 1;
-            g.invalid.push_back(t);
-          }
-          ++t;
-        }
-      });
+    for (const Region& g : regions_) {
+      for (const auto& [v, e] : g.holds) {
+        held_list_.push_back(v);
+        held_edge_.push_back(e);
+      }
+    }
+    const size_t serial_begin = held_list_.size();
+    HoldCulprits(mesh, std::move(rest));
+    std::vector<uint32_t> around;
+    for (size_t i = serial_begin; i < held_list_.size(); ++i) {
+      around.clear();
+      AppendStarAndHullRingFrom(m, held_edge_[i], &around);
+      for (uint32_t t : around) {
+        tri_mark_[t] = 1;
+        regions_[t / rt].invalid.push_back(t);
+      }
     }
   }
   stats->scan_seconds += SecondsSince(t0);

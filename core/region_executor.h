@@ -173,8 +173,6 @@ class RegionExecutor {
                       std::vector<uint32_t>& queue,
                       std::vector<uint32_t>* deferred,
                       std::vector<std::pair<uint32_t, uint32_t>>* holds);
-  void HoldCulpritsInRegions(const Mesh& mesh,
-                             const std::vector<uint32_t>& queue, uint32_t rt);
   // Holds v at its old position; `edge` leaves v (for its star). The pair
   // goes to *to (a region's list) if given, else to the held lists.
   void Hold(uint32_t v, uint32_t edge,
@@ -213,9 +211,8 @@ class RegionExecutor {
   std::vector<Vec2> cur_;      // positions the mesh is repaired for
   std::vector<uint8_t> held_;  // per vertex
   std::vector<uint32_t> held_list_;
-  std::vector<uint32_t> held_edge_;   // a half-edge leaving each, when held
-  std::vector<uint8_t> tri_mark_;     // per triangle: changed by a region flip
-  std::vector<uint8_t> around_mark_;  // per triangle: scratch, zero between
+  std::vector<uint32_t> held_edge_;  // a half-edge leaving each, when held
+  std::vector<uint8_t> tri_mark_;    // per triangle: changed by a region flip
   std::vector<Region> regions_;
   Region serial_;  // the serial pass over what crossed region boundaries
   std::vector<uint32_t> fix_serial_log_;  // the serial fix's flips (fix_log)
