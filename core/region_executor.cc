@@ -36,6 +36,10 @@ double SecondsSince(std::chrono::steady_clock::time_point t0) {
 
 using Bounds = RegionSlots;
 
+// Regions per coarse region (the parallel pass over what crossed region
+// boundaries while legalizing).
+constexpr size_t kCoarse = 8;
+
 // Triangles sampled before a dense scan to predict a rebuild.
 constexpr uint32_t kRebuildSamples = 2048;
 
@@ -744,6 +748,7 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
     g.held_log.clear();
   }
   serial_.log.clear();
+  for (Region& cg : coarse_) cg.log.clear();
   fix_serial_log_.clear();
   held_log_.clear();
   removals_.clear();
@@ -993,17 +998,51 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
       }
     });
     if (Cancelled()) return stop(true);
-    Region& serial = serial_;
-    serial.ClearWork();
+    // What crossed region boundaries: first coarse regions (kCoarse
+    // regions each) in parallel, each taking its regions' deferred edges,
+    // then serially what crosses those.
+    const uint32_t crt = rt * kCoarse;
+    const size_t num_coarse = (size_t{nt} + crt - 1) / crt;
+    coarse_.resize(num_coarse > 1 ? num_coarse : 0);
     for (size_t r = 0; r < num_regions; ++r) {
       Region& g = regions_[r];
-      serial.stack.insert(serial.stack.end(), g.deferred.rbegin(),
-                          g.deferred.rend());
       stats->deferred += static_cast<uint32_t>(g.deferred.size());
       stats->flips += g.counts;
       stats->flips += rstats[r].flips;
       stats->halvings += rstats[r].halvings;
       left.insert(left.end(), g.waiting.begin(), g.waiting.end());
+    }
+    tbb::parallel_for(
+        tbb::blocked_range<size_t>(0, coarse_.size(), 1),
+        [&](const tbb::blocked_range<size_t>& range) {
+          for (size_t c = range.begin(); c != range.end(); ++c) {
+            Region& cg = coarse_[c];
+            cg.ClearWork();
+            const size_t last = std::min(num_regions, (c + 1) * kCoarse);
+            for (size_t r = c * kCoarse; r < last; ++r) {
+              const Region& g = regions_[r];
+              cg.stack.insert(cg.stack.end(), g.deferred.rbegin(),
+                              g.deferred.rend());
+            }
+            const Bounds b{static_cast<uint32_t>(c * crt),
+                           static_cast<uint32_t>(
+                               std::min<size_t>(nt, (c + 1) * size_t{crt}))};
+            LegalizeLoop<true>(m, p, b, cg.stack, cg.deferred, &cg.counts,
+                               tri_mark_.data(), ve, &cg.log);
+          }
+        });
+    Region& serial = serial_;
+    serial.ClearWork();
+    if (coarse_.empty()) {
+      for (const Region& g : regions_) {
+        serial.stack.insert(serial.stack.end(), g.deferred.rbegin(),
+                            g.deferred.rend());
+      }
+    }
+    for (const Region& cg : coarse_) {
+      serial.stack.insert(serial.stack.end(), cg.deferred.rbegin(),
+                          cg.deferred.rend());
+      stats->flips += cg.counts;
     }
     LegalizeLoop<false>(m, p, Bounds{}, serial.stack, serial.deferred,
                         &serial.counts, tri_mark_.data(), ve, &serial.log);
@@ -1103,6 +1142,12 @@ void RegionExecutor::UndoStep(Mesh& mesh) {
                       });
   };
   Undo(m, serial_.log, ve);
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, coarse_.size(), 1),
+                    [&](const tbb::blocked_range<size_t>& range) {
+                      for (size_t c = range.begin(); c != range.end(); ++c) {
+                        Undo(m, coarse_[c].log, ve);
+                      }
+                    });
   undo_regions([&](const Region& g) {
     Undo(m, g.held_log, ve);
     Undo(m, g.log, ve);

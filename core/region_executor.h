@@ -214,7 +214,10 @@ class RegionExecutor {
   std::vector<uint32_t> held_edge_;  // a half-edge leaving each, when held
   std::vector<uint8_t> tri_mark_;    // per triangle: changed by a region flip
   std::vector<Region> regions_;
-  Region serial_;  // the serial pass over what crossed region boundaries
+  // Legalizing's pass over what crossed region boundaries: coarse regions
+  // (several regions each) in parallel, then serially.
+  std::vector<Region> coarse_;
+  Region serial_;
   std::vector<uint32_t> fix_serial_log_;  // the serial fix's flips (fix_log)
   // The serial part of moving held vertices, in order: flips (held_log_)
   // and removals, each with the triangles it rewrote as they were.
