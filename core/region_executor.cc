@@ -999,18 +999,20 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
     });
     if (Cancelled()) return stop(true);
     // What crossed region boundaries: first coarse regions (kCoarse
-    // regions each) in parallel, each taking its regions' deferred edges,
-    // then serially what crosses those.
+    // regions each) in parallel, each taking its regions' deferred edges
+    // and then the held vertices they could not move; then serially what
+    // crosses those.
     const uint32_t crt = rt * kCoarse;
     const size_t num_coarse = (size_t{nt} + crt - 1) / crt;
     coarse_.resize(num_coarse > 1 ? num_coarse : 0);
+    std::vector<RegionStepStats> cstats(coarse_.size());
     for (size_t r = 0; r < num_regions; ++r) {
       Region& g = regions_[r];
       stats->deferred += static_cast<uint32_t>(g.deferred.size());
       stats->flips += g.counts;
-      stats->flips += rstats[r].flips;
-      stats->halvings += rstats[r].halvings;
-      left.insert(left.end(), g.waiting.begin(), g.waiting.end());
+      if (coarse_.empty()) {
+        left.insert(left.end(), g.waiting.begin(), g.waiting.end());
+      }
     }
     tbb::parallel_for(
         tbb::blocked_range<size_t>(0, coarse_.size(), 1),
@@ -1029,8 +1031,19 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
                                std::min<size_t>(nt, (c + 1) * size_t{crt}))};
             LegalizeLoop<true>(m, p, b, cg.stack, cg.deferred, &cg.counts,
                                tri_mark_.data(), ve, &cg.log);
+            // The held vertices its regions could not move.
+            for (size_t r = c * kCoarse; r < last; ++r) {
+              for (uint32_t v : regions_[r].waiting) {
+                if (Cancelled() ||
+                    !MoveHeldInRegion(mesh, v, to[v], pol, b.lo, b.hi,
+                                      &cstats[c], &cg.deferred, &cg.log)) {
+                  cg.waiting.push_back(v);
+                }
+              }
+            }
           }
         });
+    if (Cancelled()) return stop(true);
     Region& serial = serial_;
     serial.ClearWork();
     if (coarse_.empty()) {
@@ -1039,10 +1052,18 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
                             g.deferred.rend());
       }
     }
-    for (const Region& cg : coarse_) {
+    for (size_t c = 0; c < coarse_.size(); ++c) {
+      const Region& cg = coarse_[c];
       serial.stack.insert(serial.stack.end(), cg.deferred.rbegin(),
                           cg.deferred.rend());
       stats->flips += cg.counts;
+      stats->flips += cstats[c].flips;
+      stats->halvings += cstats[c].halvings;
+      left.insert(left.end(), cg.waiting.begin(), cg.waiting.end());
+    }
+    for (size_t r = 0; r < num_regions; ++r) {
+      stats->flips += rstats[r].flips;
+      stats->halvings += rstats[r].halvings;
     }
     LegalizeLoop<false>(m, p, Bounds{}, serial.stack, serial.deferred,
                         &serial.counts, tri_mark_.data(), ve, &serial.log);
