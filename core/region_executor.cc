@@ -1004,15 +1004,11 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
     // crosses those.
     const uint32_t crt = rt * kCoarse;
     const size_t num_coarse = (size_t{nt} + crt - 1) / crt;
-    coarse_.resize(num_coarse > 1 ? num_coarse : 0);
-    std::vector<RegionStepStats> cstats(coarse_.size());
-    for (size_t r = 0; r < num_regions; ++r) {
-      Region& g = regions_[r];
+    coarse_.resize(num_coarse);
+    std::vector<RegionStepStats> cstats(num_coarse);
+    for (const Region& g : regions_) {
       stats->deferred += static_cast<uint32_t>(g.deferred.size());
       stats->flips += g.counts;
-      if (coarse_.empty()) {
-        left.insert(left.end(), g.waiting.begin(), g.waiting.end());
-      }
     }
     tbb::parallel_for(
         tbb::blocked_range<size_t>(0, coarse_.size(), 1),
@@ -1046,12 +1042,6 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
     if (Cancelled()) return stop(true);
     Region& serial = serial_;
     serial.ClearWork();
-    if (coarse_.empty()) {
-      for (const Region& g : regions_) {
-        serial.stack.insert(serial.stack.end(), g.deferred.rbegin(),
-                            g.deferred.rend());
-      }
-    }
     for (size_t c = 0; c < coarse_.size(); ++c) {
       const Region& cg = coarse_[c];
       serial.stack.insert(serial.stack.end(), cg.deferred.rbegin(),
@@ -1151,30 +1141,25 @@ void RegionExecutor::UndoStep(Mesh& mesh) {
     }
     mesh.TakeBackFreed(rm.free_slots);
   }
-  // Legalizing's serial pass; each region's held moves and legalizing;
-  // fixing (the serial pass, then the regions'). The regions' flips lie in
-  // their own slots, so they are undone in parallel.
-  auto undo_regions = [&](auto&& undo) {
-    tbb::parallel_for(tbb::blocked_range<size_t>(0, regions_.size(), 1),
+  // Legalizing's serial pass; the coarse regions'; each region's held moves
+  // and legalizing; fixing (the serial pass, then the regions'). Regions'
+  // flips lie in their own slots, so they are undone in parallel.
+  auto undo_each = [&](const std::vector<Region>& list, auto&& undo) {
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, list.size(), 1),
                       [&](const tbb::blocked_range<size_t>& range) {
                         for (size_t r = range.begin(); r != range.end(); ++r) {
-                          undo(regions_[r]);
+                          undo(list[r]);
                         }
                       });
   };
   Undo(m, serial_.log, ve);
-  tbb::parallel_for(tbb::blocked_range<size_t>(0, coarse_.size(), 1),
-                    [&](const tbb::blocked_range<size_t>& range) {
-                      for (size_t c = range.begin(); c != range.end(); ++c) {
-                        Undo(m, coarse_[c].log, ve);
-                      }
-                    });
-  undo_regions([&](const Region& g) {
+  undo_each(coarse_, [&](const Region& g) { Undo(m, g.log, ve); });
+  undo_each(regions_, [&](const Region& g) {
     Undo(m, g.held_log, ve);
     Undo(m, g.log, ve);
   });
   Undo(m, fix_serial_log_, ve);
-  undo_regions([&](const Region& g) { Undo(m, g.fix_log, ve); });
+  undo_each(regions_, [&](const Region& g) { Undo(m, g.fix_log, ve); });
   held_log_.clear();
   removals_.clear();
   saved_.clear();

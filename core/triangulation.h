@@ -144,7 +144,7 @@ struct StepReport {
   double fix_seconds = 0.0;
   double legalize_seconds = 0.0;
   double reinsert_seconds = 0.0;
-  double scan_seconds = 0.0;    // region executor: scan and hold-back
+  double scan_seconds = 0.0;  // region executor: scan and hold-back
   // Region executor: held vertices moved alone in the serial pass (those
   // moved by regions count in legalize_seconds).
   double held_seconds = 0.0;
