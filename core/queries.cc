@@ -901,6 +901,8 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
   const std::shared_ptr<const CellIndex> index =
       RadiusCells(t, r, queries.size(), options);
   const CellIndex* cells = index.get();
+  const bool of_points =
+      !queries.queries.empty() && queries.queries[0].start_site != kNoVertex;
   return RunRows(
       t, queries, limits, options.distances,
       [r, max_results, options, cells](
@@ -1109,7 +1111,9 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
         return kRowComplete;
       },
       /*width=*/0, /*find_root=*/true,
-      NeedRows(t, cells != nullptr, queries.size(), options));
+      // Positions walk to their nearest site whether or not cells answer
+      // (the rows make the walks shorter); points start at their site.
+      NeedRows(t, cells != nullptr && of_points, queries.size(), options));
 }
 
 // The rows of `q` from t's device executor (t.device_executor() is set;

@@ -348,6 +348,42 @@ TEST(Queries, SmallGraphBatchesReadTheMesh) {
     }
   }
 }
+// Radius batches answered from cells: positions walk to their nearest
+// sites first, so a large batch of them builds the step's neighbour rows
+// for those walks (they were walked over the mesh before); a batch of
+// points starts at its sites and does not. The rows equal brute force.
+TEST(Queries, LargeRadiusPositionBatchesBuildRowsForTheirWalks) {
+  if (testing::ExecutorOptions().executor == Executor::kDevice) {
+    GTEST_SKIP() << "the device executor keeps its own rows";
+  }
+  const std::vector<Vec2> pts = testing::UniformPoints(20000, 61);
+  const double r = 3.0 / std::sqrt(double(pts.size()));
+  RowOptions cells;
+  cells.plan = RowOptions::Plan::kCells;
+  std::vector<uint32_t> all(pts.size());
+  std::iota(all.begin(), all.end(), 0);
+  auto by_points = Make(pts);
+  ASSERT_TRUE(by_points.ok()) << by_points.status();
+  ASSERT_TRUE(
+      WithinRadiusOfPoints(*by_points, all, r, true, 0, {}, cells).ok());
+  EXPECT_EQ(by_points->view_with_cached_rows().adj_offsets, nullptr);
+  auto by_positions = Make(pts);
+  ASSERT_TRUE(by_positions.ok()) << by_positions.status();
+  const std::vector<Vec2> qs = QueryPoints(pts, 20000, 62);
+  auto rows = WithinRadius(*by_positions, qs, r, 0, {}, cells);
+  ASSERT_TRUE(rows.ok()) << rows.status();
+  EXPECT_NE(by_positions->view_with_cached_rows().adj_offsets, nullptr);
+  for (size_t i = 0; i < qs.size(); i += 97) {
+    std::vector<uint32_t> want;
+    for (uint32_t j = 0; j < pts.size(); ++j) {
+      if (CompareDistanceToRadius(qs[i], pts[j], r) <= 0) want.push_back(j);
+    }
+    std::vector<uint32_t> got(rows->ids.begin() + rows->offsets[i],
+                              rows->ids.begin() + rows->offsets[i + 1]);
+    std::sort(got.begin(), got.end());
+    EXPECT_EQ(got, want) << "query " << i;
+  }
+}
 TEST(Queries, Clustered) {
   CheckAllQueries(testing::ClusteredPoints(2000, 3), 4);
 }
