@@ -548,6 +548,46 @@ void SortClosestFirst(const Vec2& q, std::pair<double, uint32_t>* a, size_t n,
   }
 }
 
+// Puts the first `want` of a[0..n) in q's exact order at the front (the
+// rest of a stays in it, unordered) and returns how many leading entries
+// are in that order: at least min(want, n). The `want` smallest squared
+// distances are selected in double (a later entry replaces the current
+// last one when it is smaller); the entries left out whose distance lies
+// within rounding of the cut may still come before it exactly, so they
+// join the front, and the exact insertion pass of SortClosestFirst orders
+// it. When n is not much more than want, everything is sorted.
+template <typename PosOf>
+size_t SortClosestPrefix(const Vec2& q, std::pair<double, uint32_t>* a,
+                         size_t n, size_t want, PosOf&& pos) {
+  if (want == 0 || n <= want) {
+    SortClosestFirst(q, a, n, pos);
+    return n;
+  }
+  for (size_t i = 1; i < want; ++i) {
+    const auto x = a[i];
+    size_t j = i;
+    for (; j > 0 && x.first < a[j - 1].first; --j) a[j] = a[j - 1];
+    a[j] = x;
+  }
+  for (size_t i = want; i < n; ++i) {
+    if (!(a[i].first < a[want - 1].first)) continue;
+    const auto x = a[i];
+    a[i] = a[want - 1];
+    size_t j = want - 1;
+    for (; j > 0 && x.first < a[j - 1].first; --j) a[j] = a[j - 1];
+    a[j] = x;
+  }
+  const double cut = a[want - 1].first;
+  size_t m = want;
+  for (size_t i = want; i < n; ++i) {
+    if (a[i].first <= cut + internal::kDistErrBound * (cut + a[i].first)) {
+      std::swap(a[m++], a[i]);
+    }
+  }
+  SortClosestFirst(q, a, m, pos);
+  return m;
+}
+
 // The first `want` points of q's order (fewer if the set is smaller), by
 // best-first expansion from root over a bounded candidate list kept in the
 // exact order (squared distances in double decide clear cases). A candidate
@@ -677,8 +717,8 @@ bool KnnCellsRow(const CellIndex& cells, const Query& q, size_t want, double r0,
     }
     r *= kRetryGrowth;
   }
-  SortClosestFirst(q.q, kept, num_kept,
-                   [pos](uint32_t c) -> const Vec2& { return pos[c]; });
+  SortClosestPrefix(q.q, kept, num_kept, want,
+                    [pos](uint32_t c) -> const Vec2& { return pos[c]; });
   out.resize(want);
   for (size_t i = 0; i < want; ++i) {
     out[i] = {exts[kept[i].second], std::sqrt(kept[i].first)};

@@ -348,6 +348,37 @@ TEST(Queries, SmallGraphBatchesReadTheMesh) {
     }
   }
 }
+// k nearest from cells on a lattice: the k-th distance is shared by up to
+// eight points, so the selection of the closest candidates must keep every
+// near-tie of its cut and order them exactly (the documented tie order).
+TEST(Queries, KNearestFromCellsKeepsTiesAtTheCut) {
+  const std::vector<Vec2> pts = testing::Lattice(70, 0.37);
+  auto t = Make(pts);
+  ASSERT_TRUE(t.ok()) << t.status();
+  RowOptions cells;
+  cells.plan = RowOptions::Plan::kCells;
+  std::vector<uint32_t> all(pts.size());
+  std::iota(all.begin(), all.end(), 0);
+  std::vector<Vec2> qs;
+  for (int i = 0; i < 40; ++i) qs.push_back({0.37 * (i + 0.5), 0.37 * 20.5});
+  for (int k : {3, 4, 5, 8, 9, 12, 20}) {
+    auto of_points = KNearestOfPoints(*t, all, k, true, {}, cells);
+    ASSERT_TRUE(of_points.ok()) << of_points.status();
+    for (uint32_t i = 0; i < pts.size(); i += 37) {
+      auto rank = BruteRank(pts, pts[i], i);
+      rank.resize(k);
+      ASSERT_EQ(Row(*of_points, i), rank) << "k=" << k << " point " << i;
+    }
+    auto of_positions = KNearest(*t, qs, k, {}, cells);
+    ASSERT_TRUE(of_positions.ok()) << of_positions.status();
+    for (size_t i = 0; i < qs.size(); ++i) {
+      auto rank = BruteRank(pts, qs[i], kNoVertex);
+      rank.resize(k);
+      ASSERT_EQ(Row(*of_positions, i), rank) << "k=" << k << " query " << i;
+    }
+  }
+}
+
 // Radius batches answered from cells: positions walk to their nearest
 // sites first, so a large batch of them builds the step's neighbour rows
 // for those walks (they were walked over the mesh before); a batch of
