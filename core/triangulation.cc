@@ -601,6 +601,8 @@ absl::Status Triangulation::AttemptOnDevice(
   report->legalize_seconds += a->legalize_seconds;
   report->transfer_seconds += a->transfer_seconds;
   report->transfer_bytes += a->bytes_uploaded + a->bytes_downloaded;
+  report->device_calls += a->device_calls;
+  report->device_waits += a->host_waits;
   if (a->cancelled) {
     *result = -1;
   } else if (a->tangled) {

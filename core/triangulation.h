@@ -153,6 +153,10 @@ struct StepReport {
   // of nothing else) and their volume.
   double transfer_seconds = 0.0;
   uint64_t transfer_bytes = 0;
+  // Device executor: device algorithms (Thrust calls) its attempts ran,
+  // and how many of them the host waited for (DeviceAttempt).
+  uint64_t device_calls = 0;
+  uint64_t device_waits = 0;
 };
 
 class Triangulation {

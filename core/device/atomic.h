@@ -46,6 +46,15 @@ KINETRI_HD inline void ClaimMax(uint32_t* slot, uint32_t value) {
 // *slot = value for a slot other threads may write the same value to;
 // kSystem: a word the host reads or writes while kernels run (pinned host
 // memory on a GPU), with system scope.
+KINETRI_HD inline void AddRelaxed(uint32_t* slot, uint32_t value) {
+#ifdef KINETRI_HAS_LIBCUDACXX
+  cuda::atomic_ref<uint32_t, cuda::thread_scope_device> ref(*slot);
+  ref.fetch_add(value, cuda::std::memory_order_relaxed);
+#else
+  __atomic_fetch_add(slot, value, __ATOMIC_RELAXED);
+#endif
+}
+
 template <bool kSystem = false>
 KINETRI_HD inline void StoreRelaxed(uint32_t* slot, uint32_t value) {
 #ifdef KINETRI_HAS_LIBCUDACXX

@@ -57,10 +57,13 @@ struct DeviceAttempt {
   double transfer_seconds = 0.0;  // uploads and downloads
   uint64_t bytes_uploaded = 0;
   uint64_t bytes_downloaded = 0;
-  // Device algorithms (Thrust calls, each a launch or more and a
-  // synchronization) the attempt ran: with the seconds above, the cost of
-  // one on the backend.
+  // Device algorithms (Thrust calls, each a launch or more) the attempt
+  // ran, and how many of them the host waited for (it reads their result,
+  // a worklist's size or the flip counts; on the CUDA backend the others
+  // return at once, the TBB one runs every call to its end): with the
+  // seconds above, the cost of one on the backend.
   uint64_t device_calls = 0;
+  uint64_t host_waits = 0;
 };
 
 // One batch of queries for the device executor. Its arguments are already

@@ -11,7 +11,11 @@
 // vertices it joins), the next worklist is built from the same elements. So
 // for the same input the device mesh equals the round executor's, triangle
 // numbering included. Only Thrust algorithms over the functors below run on
-// the device; the host drives the rounds (one size read per round).
+// the device; the host drives the rounds. It waits for the device only where
+// it reads a result (a worklist's size): on the CUDA system every other
+// algorithm returns at once (core/device/scratch_pool.inl), so a legalizing
+// round waits twice and a fixing round five times; flip counts stay on the
+// device until the attempt ends.
 #ifndef KINETRI_DEVICE_NS
 #error "define KINETRI_DEVICE_NS before including round_executor.inl"
 #endif
@@ -210,11 +214,6 @@ struct FlipOp {
   KINETRI_HD void operator()(uint32_t e) const { m.Flip(e); }
 };
 
-struct KindIs {
-  uint32_t kind;
-  KINETRI_HD bool operator()(uint32_t k) const { return k == kind; }
-};
-
 struct EdgeIllegal {
   MeshView m;
   const Vec2* pos;
@@ -239,45 +238,117 @@ struct TriangleEdges {
   }
 };
 
-// After flipping winner edge e: the four outer edges of its quad.
-struct OuterEdges {
-  MeshView m;
-  const uint32_t* winner_edges;
-  uint32_t* out;
+// Flip counts kept on the device during an attempt (counters_): one word
+// per fix kind (rules::FixProposal::kind, 1..3) and one for Delaunay flips.
+constexpr uint32_t kDelaunay = 4;
+constexpr uint32_t kCounters = 5;
+
+// Counts the flip kind of each fixing winner (winner indices in the range).
+struct CountKinds {
+  const uint32_t* kinds;
+  uint32_t* counters;
   KINETRI_HD void operator()(uint32_t i) const {
-    const uint32_t e = winner_edges[i], f = m.twin[e];
-    out[4 * i + 0] = Canonical(m, Next(e));
-    out[4 * i + 1] = Canonical(m, Prev(e));
-    out[4 * i + 2] = Canonical(m, Next(f));
-    out[4 * i + 3] = Canonical(m, Prev(f));
+    AddRelaxed(&counters[kinds[i]], 1);
+  }
+};
+
+// Legalizing: candidate i of a round is the edge edges[i], flagged in
+// flags[i] once the claims are decided (1: it won).
+struct Won {
+  const uint32_t* edges;
+  const uint8_t* flags;
+};
+
+// flags[i]: whether work[i] is a candidate of this round, i.e. known to be
+// illegal (the mark is cleared: it is used once) or tested illegal now.
+struct TestEdge {
+  MeshView m;
+  const Vec2* pos;
+  const uint32_t* work;
+  uint8_t* known;
+  uint8_t* flags;
+  KINETRI_HD void operator()(uint32_t i) const {
+    const uint32_t e = work[i];
+    if (e == kNoEdge) {
+      flags[i] = 0;
+    } else if (known[e] != 0) {
+      known[e] = 0;
+      flags[i] = 1;
+    } else {
+      flags[i] = rules::IsIllegal(m, pos, e) ? 1 : 0;
+    }
+  }
+};
+
+// Clears the known marks of the entries of a worklist (a stopped attempt).
+struct ForgetKnown {
+  uint8_t* known;
+  KINETRI_HD void operator()(uint32_t e) const {
+    if (e != kNoEdge) known[e] = 0;
+  }
+};
+
+// flags[i] = whether candidate i won its claims; winners are counted.
+struct DecideOp {
+  Claims c;
+  uint8_t* flags;
+  uint32_t* flips;
+  KINETRI_HD void operator()(uint32_t i) const {
+    const bool won = c.Won(i);
+    flags[i] = won ? 1 : 0;
+    if (won) AddRelaxed(flips, 1);
+  }
+};
+
+struct FlipWonOp {
+  MeshView m;
+  Won won;
+  KINETRI_HD void operator()(uint32_t i) const {
+    if (won.flags[i]) m.Flip(won.edges[i]);
   }
 };
 
 // Marks (value 0) or unmarks (kNoEdge) in tri_claim the two triangles of
-// each winner edge (flips keep triangle ids; claims are released then).
-struct MarkFlipped {
+// each winner (flips keep triangle ids; claims are released then).
+struct MarkWonTriangles {
   MeshView m;
-  const uint32_t* winner_edges;
+  Won won;
   uint32_t* tri_claim;
   uint32_t value;
   KINETRI_HD void operator()(uint32_t i) const {
-    const uint32_t e = winner_edges[i];
+    if (!won.flags[i]) return;
+    const uint32_t e = won.edges[i];
     tri_claim[TriangleOf(e)] = value;
     tri_claim[TriangleOf(m.twin[e])] = value;
   }
 };
 
-// Proposal i lost its claim and neither of its triangles flipped: the
-// edge is still illegal (its four vertices did not change).
-struct UnchangedLoser {
+// The next worklist, four entries per candidate at out + 4 i: a winner's
+// four outer edges (after its flip), or a loser whose triangles did not
+// flip (its four vertices did not change: still illegal, marked known),
+// or nothing; kNoEdge fills the rest.
+struct NextWork {
   MeshView m;
-  const uint32_t* edges;
-  const uint8_t* won;
-  const uint32_t* tri_claim;
-  KINETRI_HD bool operator()(uint32_t i) const {
-    const uint32_t e = edges[i];
-    return won[i] == 0 && tri_claim[TriangleOf(e)] != 0 &&
-           tri_claim[TriangleOf(m.twin[e])] != 0;
+  Won won;
+  const uint32_t* tri_claim;  // 0 on the winners' triangles
+  uint8_t* known;
+  uint32_t* out;
+  KINETRI_HD void operator()(uint32_t i) const {
+    const uint32_t e = won.edges[i];
+    uint32_t* o = out + 4 * size_t{i};
+    if (won.flags[i]) {
+      const uint32_t f = m.twin[e];
+      o[0] = Canonical(m, Next(e));
+      o[1] = Canonical(m, Prev(e));
+      o[2] = Canonical(m, Next(f));
+      o[3] = Canonical(m, Prev(f));
+      return;
+    }
+    const bool unchanged =
+        tri_claim[TriangleOf(e)] != 0 && tri_claim[TriangleOf(m.twin[e])] != 0;
+    if (unchanged) known[e] = 1;
+    o[0] = unchanged ? e : kNoEdge;
+    o[1] = o[2] = o[3] = kNoEdge;
   }
 };
 
@@ -358,6 +429,10 @@ struct QuadCorners {
   const uint32_t* winner_edges;
   uint32_t* vertex_edge;
   uint32_t* last;
+  // Entries that won (null: every entry is a winner); the others are
+  // skipped, and the winners' relative order is that of their indices.
+  const uint8_t* won = nullptr;
+  KINETRI_HD bool Skip(uint32_t i) const { return won != nullptr && !won[i]; }
   // The six half-edges in UpdateVertexEdgesAfterFlip's order.
   KINETRI_HD void Edges(uint32_t i, uint32_t h[6]) const {
     const uint32_t e = winner_edges[i], f = m.twin[e];
@@ -372,6 +447,7 @@ struct QuadCorners {
 struct MarkLast {
   QuadCorners q;
   KINETRI_HD void operator()(uint32_t i) const {
+    if (q.Skip(i)) return;
     uint32_t h[6];
     q.Edges(i, h);
     for (uint32_t k = 0; k < 6; ++k) {
@@ -383,6 +459,7 @@ struct MarkLast {
 struct WriteVertexEdges {
   QuadCorners q;
   KINETRI_HD void operator()(uint32_t i) const {
+    if (q.Skip(i)) return;
     uint32_t h[6];
     q.Edges(i, h);
     for (uint32_t k = 0; k < 6; ++k) {  // later entries win, as on the host
@@ -394,6 +471,7 @@ struct WriteVertexEdges {
 struct ClearLast {
   QuadCorners q;
   KINETRI_HD void operator()(uint32_t i) const {
+    if (q.Skip(i)) return;
     uint32_t h[6];
     q.Edges(i, h);
     for (uint32_t k = 0; k < 6; ++k) {
@@ -423,10 +501,11 @@ class RoundDeviceExecutor final : public DeviceExecutor {
                                &work_,        &bad_,       &edges_,
                                &joins_,       &kinds_,     &winners_,
                                &win_edges_,   &next_,      &touched_,
-                               &seeds_,       &known_}) {
+                               &seeds_,       &counters_}) {
       words += v->capacity();
     }
-    return words * sizeof(uint32_t) + pos_.capacity() * sizeof(Vec2) +
+    return words * sizeof(uint32_t) + known_.capacity() + flags_.capacity() +
+           pos_.capacity() * sizeof(Vec2) +
            props_.capacity() * sizeof(rules::FixProposal) + pool_.bytes() +
            queries_.bytes();
   }
@@ -443,14 +522,16 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     std::fprintf(
         stderr,
         "[device profile] %s executor: %llu attempts, %llu fixing "
-        "and %llu legalizing rounds, %llu device algorithms; fix "
+        "and %llu legalizing rounds, %llu device algorithms (the host "
+        "waited for %llu); fix "
         "%.3f s, legalize %.3f s, transfers %.3f s (%.1f MB up, %.1f MB "
         "down)\n",
         DeviceBackendName(backend_),
         static_cast<unsigned long long>(totals_.attempts),
         static_cast<unsigned long long>(totals_.counts.fix_rounds),
         static_cast<unsigned long long>(totals_.counts.legalize_rounds),
-        static_cast<unsigned long long>(totals_.calls), totals_.fix_seconds,
+        static_cast<unsigned long long>(totals_.calls),
+        static_cast<unsigned long long>(totals_.waits), totals_.fix_seconds,
         totals_.legalize_seconds, totals_.transfer_seconds,
         double(totals_.bytes_uploaded) * 1e-6,
         double(totals_.bytes_downloaded) * 1e-6);
@@ -465,14 +546,19 @@ class RoundDeviceExecutor final : public DeviceExecutor {
                                         const std::vector<uint32_t>* seeds,
                                         double rebuild_fraction,
                                         const CancelToken* cancel) override {
-    const uint64_t calls = calls_;
+    const uint64_t calls = calls_, waits = waits_;
     clock_.Mark(0);  // line 0: the attempt's start up to its first algorithm
     DeviceAttempt out =
         AttemptOnDevice(mesh, to, candidates, seeds, rebuild_fraction, cancel);
+    // Whatever the attempt launched last has finished (a stopped attempt
+    // may end on calls the host did not wait for).
+    Drain(pool_);
     clock_.Stop();
     out.device_calls = calls_ - calls;
+    out.host_waits = waits_ - waits;
     ++totals_.attempts;
     totals_.calls += out.device_calls;
+    totals_.waits += out.host_waits;
     totals_.counts += out.counts;
     totals_.fix_seconds += out.fix_seconds;
     totals_.legalize_seconds += out.legalize_seconds;
@@ -481,10 +567,12 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     totals_.bytes_downloaded += out.bytes_downloaded;
     if (DeviceProfileLevel() >= 2) {
       std::fprintf(stderr,
-                   "[device profile] attempt: %llu device algorithms, %u "
+                   "[device profile] attempt: %llu device algorithms (%llu "
+                   "waited for), %u "
                    "fixing and %u legalizing rounds, fix %.6f s, legalize "
                    "%.6f s, transfers %.6f s (%.1f MB up)%s\n",
                    static_cast<unsigned long long>(out.device_calls),
+                   static_cast<unsigned long long>(out.host_waits),
                    out.counts.fix_rounds, out.counts.legalize_rounds,
                    out.fix_seconds, out.legalize_seconds, out.transfer_seconds,
                    double(out.bytes_uploaded) * 1e-6,
@@ -587,7 +675,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       out.bytes_uploaded += 4ull * ns;
       SortUnique(next_);
       work_.resize(3 * next_.size());
-      thr::for_each(P(), Count(0), Count(static_cast<uint32_t>(next_.size())),
+      thr::for_each(A(), Count(0), Count(static_cast<uint32_t>(next_.size())),
                     TriangleEdges{m, Raw(next_), Raw(work_)});
       SortUnique(work_);
     }
@@ -618,16 +706,24 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     return out;
   }
 
-  // The policy of every Thrust algorithm below (temporaries from pool_);
-  // each call counts one device algorithm, and marks its line on clock_.
+  // The policies of the Thrust algorithms below (temporaries from pool_):
+  // P() for a call whose result the host reads (it waits for the device),
+  // A() for the rest (no wait on the CUDA system). Each call counts one
+  // device algorithm (and P() one wait), and marks its line on clock_.
   PoolPolicy P(int line = __builtin_LINE()) {
     ++calls_;
+    ++waits_;
     clock_.Mark(line);
     return Policy(pool_);
   }
+  NoWaitPolicy A(int line = __builtin_LINE()) {
+    ++calls_;
+    clock_.Mark(line);
+    return PolicyNoWait(pool_);
+  }
 
   void SortUnique(U32Vector& v) {
-    thr::sort(P(), v.begin(), v.end());
+    thr::sort(A(), v.begin(), v.end());
     v.erase(thr::unique(P(), v.begin(), v.end()), v.end());
   }
 
@@ -636,6 +732,8 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   int Fix(const MeshView& m, const Vec2* p, uint32_t nt, uint32_t nv,
           bool keep_touched, const CancelToken* cancel, DeviceAttempt* out) {
     FlipCounts counts;
+    counters_.resize(kCounters);
+    thr::fill(A(), counters_.begin(), counters_.end(), 0u);
     while (true) {
       if (cancel != nullptr && cancel->Cancelled()) return -1;
       bad_.resize(work_.size());
@@ -645,7 +743,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       if (bad_.empty()) break;
       const uint32_t nb = static_cast<uint32_t>(bad_.size());
       props_.resize(nb);
-      thr::transform(P(), bad_.begin(), bad_.end(), props_.begin(),
+      thr::transform(A(), bad_.begin(), bad_.end(), props_.begin(),
                      ProposeFix{m, p});
       props_.erase(thr::remove_if(P(), props_.begin(), props_.end(), NoFlip{}),
                    props_.end());
@@ -653,14 +751,14 @@ class RoundDeviceExecutor final : public DeviceExecutor {
         Stuck(m, bad_, out);
         return 0;
       }
-      thr::sort(P(), props_.begin(), props_.end(), EdgeLess{});
+      thr::sort(A(), props_.begin(), props_.end(), EdgeLess{});
       props_.erase(thr::unique(P(), props_.begin(), props_.end(), EdgeEqual{}),
                    props_.end());
       const uint32_t np = static_cast<uint32_t>(props_.size());
       edges_.resize(np);
       joins_.resize(2 * np);
       kinds_.resize(np);
-      thr::for_each(P(), Count(0), Count(np),
+      thr::for_each(A(), Count(0), Count(np),
                     SplitProposal{thr::raw_pointer_cast(props_.data()),
                                   Raw(edges_), Raw(joins_), Raw(kinds_)});
       const uint32_t nw =
@@ -670,28 +768,21 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       // Next worklist: the still-invalid triangles plus every winner's
       // footprint (taken before flipping; flips keep triangle ids).
       win_edges_.resize(nw);
-      thr::gather(P(), winners_.begin(), winners_.end(), edges_.begin(),
+      thr::gather(A(), winners_.begin(), winners_.end(), edges_.begin(),
                   win_edges_.begin());
       next_.resize(nb + 6ull * nw);
-      thr::copy(bad_.begin(), bad_.end(), next_.begin());
+      thr::copy(A(), bad_.begin(), bad_.end(), next_.begin());
       const size_t touched_base = touched_.size();
       if (keep_touched) touched_.resize(touched_base + 2ull * nw);
-      thr::for_each(P(), Count(0), Count(nw),
+      thr::for_each(A(), Count(0), Count(nw),
                     WriteFootprint{
                         m, Raw(win_edges_), Raw(next_) + nb,
                         keep_touched ? Raw(touched_) + touched_base : nullptr});
       FlipWinners(m, nw);
-      // Flip kinds of the winners (kinds_ reused as their gathered copy).
-      bad_.resize(nw);
-      thr::gather(P(), winners_.begin(), winners_.end(), kinds_.begin(),
-                  bad_.begin());
+      // The winners' flip kinds, counted on the device (read once fixed).
+      thr::for_each(A(), winners_.begin(), winners_.end(),
+                    CountKinds{Raw(kinds_), Raw(counters_)});
       ++counts.fix_rounds;
-      counts.interior_fix += thr::count_if(P(), bad_.begin(), bad_.end(),
-                                           KindIs{rules::kInteriorFlip});
-      counts.hull_absorb += thr::count_if(P(), bad_.begin(), bad_.end(),
-                                          KindIs{rules::kHullAbsorb});
-      counts.hull_release += thr::count_if(P(), bad_.begin(), bad_.end(),
-                                           KindIs{rules::kHullRelease});
       SortUnique(next_);
       work_.swap(next_);
     }
@@ -707,81 +798,108 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       Stuck(m, bad_, out);
       return 0;
     }
+    uint32_t kinds[kCounters];
+    ReadCounters(kinds);
+    counts.interior_fix += kinds[rules::kInteriorFlip];
+    counts.hull_absorb += kinds[rules::kHullAbsorb];
+    counts.hull_release += kinds[rules::kHullRelease];
     out->counts += counts;
     return 1;
   }
 
   // Legalizing rounds over work_ (canonical edges, sorted, unique). False
-  // when cancelled. Each predicate is evaluated once per change: work_
-  // holds the edges to test, known_ the illegal edges that lost their claim
-  // while neither of their triangles flipped (not tested again); both
-  // sorted and disjoint. The winners are those of re-testing every loser (a
-  // loser whose triangle flipped comes back as an outer edge of its quad),
-  // as in the round executor (core/kinetic.cc).
+  // when cancelled. Each predicate is evaluated once per change: a round's
+  // candidates are the illegal edges of work_ plus the edges known to be
+  // illegal (losers of the last round whose triangles did not flip, marked
+  // in known_ and not tested again), in ascending order. The winners are
+  // those of re-testing every loser (a loser whose triangle flipped comes
+  // back as an outer edge of its quad), as in the round executor
+  // (core/kinetic.cc). Winners are flagged, not gathered: the host waits
+  // twice per round, for the candidates' count and the next worklist's
+  // (kNoEdge entries in work_ are placeholders, never candidates).
   bool Legalize(const MeshView& m, const Vec2* p, const CancelToken* cancel,
                 FlipCounts* counts) {
-    known_.clear();
+    if (known_.size() != m.num_half_edges) {
+      known_.assign(m.num_half_edges, 0);
+    }
+    counters_.resize(kCounters);
+    thr::fill(A(), counters_.begin(), counters_.end(), 0u);
     while (true) {
-      if (cancel != nullptr && cancel->Cancelled()) return false;
-      next_.resize(work_.size());
-      next_.erase(thr::copy_if(P(), work_.begin(), work_.end(), next_.begin(),
-                               EdgeIllegal{m, p}),
-                  next_.end());
-      edges_.resize(known_.size() + next_.size());
-      thr::merge(P(), known_.begin(), known_.end(), next_.begin(), next_.end(),
-                 edges_.begin());
-      if (edges_.empty()) return true;
+      const uint32_t nwork = static_cast<uint32_t>(work_.size());
+      if (cancel != nullptr && cancel->Cancelled()) {
+        // Leave known_ clear for the next attempt.
+        thr::for_each(A(), work_.begin(), work_.end(),
+                      ForgetKnown{Raw(known_)});
+        return false;
+      }
+      flags_.resize(nwork);
+      thr::for_each(A(), Count(0), Count(nwork),
+                    TestEdge{m, p, Raw(work_), Raw(known_), Raw(flags_)});
+      edges_.resize(nwork);
+      edges_.erase(thr::copy_if(P(), work_.begin(), work_.end(), flags_.begin(),
+                                edges_.begin(), IsSet{}),
+                   edges_.end());
+      if (edges_.empty()) break;
       const uint32_t ni = static_cast<uint32_t>(edges_.size());
-      const uint32_t nw = SelectWinners(
-          Claims{m, Raw(edges_), nullptr, Raw(tri_claim_), nullptr, 0}, ni);
-      win_edges_.resize(nw);
-      thr::gather(P(), winners_.begin(), winners_.end(), edges_.begin(),
-                  win_edges_.begin());
-      FlipWinners(m, nw);
-      // Losers whose triangles did not flip stay known to be illegal.
-      thr::for_each(P(), Count(0), Count(nw),
-                    MarkFlipped{m, Raw(win_edges_), Raw(tri_claim_), 0});
-      known_.resize(ni);
-      known_.erase(
-          thr::copy_if(P(), edges_.begin(), edges_.end(), Count(0),
-                       known_.begin(),
-                       UnchangedLoser{m, Raw(edges_),
-                                      thr::raw_pointer_cast(flags_.data()),
-                                      Raw(tri_claim_)}),
-          known_.end());
-      thr::for_each(P(), Count(0), Count(nw),
-                    MarkFlipped{m, Raw(win_edges_), Raw(tri_claim_), kNoEdge});
-      // Next worklist: the four outer edges of each flipped quad.
-      work_.resize(4ull * nw);
-      thr::for_each(P(), Count(0), Count(nw),
-                    OuterEdges{m, Raw(win_edges_), Raw(work_)});
+      const Claims c{m, Raw(edges_), nullptr, Raw(tri_claim_), nullptr, 0};
+      flags_.resize(ni);
+      thr::for_each(A(), Count(0), Count(ni), ClaimOp{c});
+      thr::for_each(A(), Count(0), Count(ni),
+                    DecideOp{c, Raw(flags_), Raw(counters_) + kDelaunay});
+      thr::for_each(A(), Count(0), Count(ni), ReleaseOp{c});
+      const Won won{Raw(edges_), Raw(flags_)};
+      thr::for_each(A(), Count(0), Count(ni), FlipWonOp{m, won});
+      const QuadCorners q{m, Raw(edges_), Raw(vertex_edge_), Raw(last_),
+                          Raw(flags_)};
+      thr::for_each(A(), Count(0), Count(ni), MarkLast{q});
+      thr::for_each(A(), Count(0), Count(ni), WriteVertexEdges{q});
+      thr::for_each(A(), Count(0), Count(ni), ClearLast{q});
+      // The winners' triangles are marked (0) while the next worklist is
+      // written: the four outer edges of each flipped quad, and each loser
+      // whose triangles did not flip (still illegal, marked known).
+      thr::for_each(A(), Count(0), Count(ni),
+                    MarkWonTriangles{m, won, Raw(tri_claim_), 0});
+      work_.resize(4ull * ni);
+      thr::for_each(A(), Count(0), Count(ni),
+                    NextWork{m, won, Raw(tri_claim_), Raw(known_), Raw(work_)});
+      thr::for_each(A(), Count(0), Count(ni),
+                    MarkWonTriangles{m, won, Raw(tri_claim_), kNoEdge});
       ++counts->legalize_rounds;
-      counts->delaunay += nw;
       SortUnique(work_);
     }
+    uint32_t flips[kCounters];
+    ReadCounters(flips);
+    counts->delaunay += flips[kDelaunay];
+    return true;
+  }
+
+  // The device counters into `out` (kCounters words), waiting for them.
+  void ReadCounters(uint32_t* out) {
+    (void)P();  // counts the call and the wait
+    thr::copy(counters_.begin(), counters_.end(), out);
   }
 
   // Flips the edges in win_edges_ (disjoint footprints) and refreshes
   // vertex_edge of their quads' corners.
   void FlipWinners(const MeshView& m, uint32_t nw) {
-    thr::for_each(P(), win_edges_.begin(), win_edges_.end(), FlipOp{m});
+    thr::for_each(A(), win_edges_.begin(), win_edges_.end(), FlipOp{m});
     const QuadCorners q{m, Raw(win_edges_), Raw(vertex_edge_), Raw(last_)};
-    thr::for_each(P(), Count(0), Count(nw), MarkLast{q});
-    thr::for_each(P(), Count(0), Count(nw), WriteVertexEdges{q});
-    thr::for_each(P(), Count(0), Count(nw), ClearLast{q});
+    thr::for_each(A(), Count(0), Count(nw), MarkLast{q});
+    thr::for_each(A(), Count(0), Count(nw), WriteVertexEdges{q});
+    thr::for_each(A(), Count(0), Count(nw), ClearLast{q});
   }
 
   // Claims for n proposals; winners_ receives the indices of the winners
   // (ascending), flags_ one byte per proposal (1: won). Returns their count.
   uint32_t SelectWinners(const Claims& c, uint32_t n) {
-    thr::for_each(P(), Count(0), Count(n), ClaimOp{c});
+    thr::for_each(A(), Count(0), Count(n), ClaimOp{c});
     flags_.resize(n);
-    thr::transform(P(), Count(0), Count(n), flags_.begin(), WonOp{c});
+    thr::transform(A(), Count(0), Count(n), flags_.begin(), WonOp{c});
     winners_.resize(n);
     winners_.erase(thr::copy_if(P(), Count(0), Count(n), flags_.begin(),
                                 winners_.begin(), IsSet{}),
                    winners_.end());
-    thr::for_each(P(), Count(0), Count(n), ReleaseOp{c});
+    thr::for_each(A(), Count(0), Count(n), ReleaseOp{c});
     return static_cast<uint32_t>(winners_.size());
   }
 
@@ -807,16 +925,23 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   U32Vector tri_claim_, vert_claim_;  // kNoEdge between rounds
   // Scratch kept across rounds and steps (grown, never shrunk).
   U32Vector work_, bad_, edges_, joins_, kinds_, winners_, win_edges_, next_,
-      touched_, seeds_, known_;
+      touched_, seeds_;
+  // Per half-edge: 1 while it waits in work_ as a loser known to be illegal.
+  thr::device_vector<uint8_t> known_;
+  // Flip counts kept on the device during an attempt: per fix kind
+  // (rules::FixProposal::kind) and kDelaunay.
+  U32Vector counters_;
   thr::device_vector<uint8_t> flags_;
   thr::device_vector<rules::FixProposal> props_;
   ScratchPool pool_;     // Thrust's temporaries, kept across rounds and steps
-  uint64_t calls_ = 0;   // device algorithms launched (P() calls)
+  uint64_t calls_ = 0;   // device algorithms launched (P() and A() calls)
+  uint64_t waits_ = 0;   // ... of which the host waited for (P() calls)
   CallSiteClock clock_;  // where the attempts' time goes, by call site
   // Over the executor's life (KINETRI_DEVICE_PROFILE prints them).
   struct Totals {
     uint64_t attempts = 0;
     uint64_t calls = 0;
+    uint64_t waits = 0;
     FlipCounts counts;
     double fix_seconds = 0.0;
     double legalize_seconds = 0.0;

@@ -126,6 +126,28 @@ class ScratchPool {
 using PoolPolicy = decltype(pthr::device(std::declval<ScratchPool&>()));
 inline PoolPolicy Policy(ScratchPool& pool) { return pthr::device(pool); }
 
+// The same for calls whose results the host does not read: on the CUDA
+// system they return without waiting for the device (Thrust's par_nosync;
+// calls on the default stream run in order, and a call that returns a
+// value still waits for it); the TBB system always runs a call to its end.
+// Drain() waits for everything launched so far.
+#if THRUST_DEVICE_SYSTEM == THRUST_DEVICE_SYSTEM_CUDA
+using NoWaitPolicy =
+    decltype(pthr::cuda::par_nosync(std::declval<ScratchPool&>()));
+inline NoWaitPolicy PolicyNoWait(ScratchPool& pool) {
+  return pthr::cuda::par_nosync(pool);
+}
+inline void Drain(ScratchPool& pool) {
+  NoWaitPolicy policy = PolicyNoWait(pool);
+  pthr::cuda_cub::throw_on_error(pthr::cuda_cub::synchronize(policy),
+                                 "device executor: waiting for the device");
+}
+#else
+using NoWaitPolicy = PoolPolicy;
+inline NoWaitPolicy PolicyNoWait(ScratchPool& pool) { return Policy(pool); }
+inline void Drain(ScratchPool&) {}
+#endif
+
 }  // namespace
 }  // namespace KINETRI_DEVICE_NS
 }  // namespace kinetri::core::device

@@ -88,6 +88,40 @@ TEST(DeviceExecutor, EqualsTheRoundExecutorHalfEdgeForHalfEdge) {
   }
 }
 
+// The host waits for the device only where it reads a result: twice per
+// legalizing round (the candidates' count, the next worklist's), five
+// times per fixing round, and a few times per attempt (first worklists,
+// hull check, flip counts); every other algorithm returns without waiting
+// on the CUDA backend. (The emulated backend counts the same calls.)
+TEST(DeviceExecutor, HostWaitsTwicePerLegalizingRound) {
+  const size_t n = 3000;
+  auto t =
+      Triangulation::Create(testing::UniformPoints(n, 21), DeviceOptions());
+  ASSERT_TRUE(t.ok()) << t.status();
+  std::mt19937_64 rng(22);
+  const double spacing = 1.0 / std::sqrt(double(n));
+  int checked = 0;
+  for (double sigma : {0.01, 0.02, 0.03, 0.05, 0.1}) {
+    auto r = t->ApplyDisplacements(Brownian(n, sigma * spacing, rng));
+    ASSERT_TRUE(r.ok()) << r.status();
+    if (r->path != UpdatePath::kLocal || r->failed_attempts != 0) continue;
+    ++checked;
+    const uint64_t rounds = r->flips.legalize_rounds;
+    ASSERT_GT(rounds, 0u);
+    EXPECT_LE(r->device_waits, 2 * rounds + 5 * r->flips.fix_rounds + 12)
+        << "sigma " << sigma;
+    // Most calls of a round do not wait.
+    EXPECT_GE(r->device_calls, 3 * r->device_waits) << "sigma " << sigma;
+    std::printf(
+        "sigma %.2f: %u fixing and %u legalizing rounds, %llu device calls, "
+        "%llu waited for\n",
+        sigma, r->flips.fix_rounds, r->flips.legalize_rounds,
+        static_cast<unsigned long long>(r->device_calls),
+        static_cast<unsigned long long>(r->device_waits));
+  }
+  EXPECT_GT(checked, 0);
+}
+
 // The device copy of the mesh lives across steps: the first step uploads
 // the mesh, a later local step only the positions (and downloads the
 // result); a rebuild or re-insertion makes the next step upload it again.
