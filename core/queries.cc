@@ -1223,10 +1223,9 @@ absl::StatusOr<NeighborLists> AllNearestNeighbors(const Triangulation& t) {
       ParallelFor(0, n, [&](size_t in) {
         const uint32_t s = static_cast<uint32_t>(in);
         const uint32_t w = FirstNeighbor(v, v.pos[s], s, false);
-        by_int[in] = w == kNoVertex
-                         ? Nearest{0.0, kNoVertex}
-                         : Nearest{Distance(v.pos[s], v.pos[w]),
-                                   v.ext_of_int[w]};
+        by_int[in] = w == kNoVertex ? Nearest{0.0, kNoVertex}
+                                    : Nearest{Distance(v.pos[s], v.pos[w]),
+                                              v.ext_of_int[w]};
       });
     } else {
       ParallelFor(0, n, [&](size_t in) {
