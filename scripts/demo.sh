@@ -7,7 +7,10 @@ cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 bash scripts/build.sh
 mkdir -p out
-./build/server/kinetri-server --listen=127.0.0.1:0 >out/server.log 2>&1 &
+# Free ports for gRPC and /metrics: a server already running here (its
+# default metrics port is 9464) does not stop the demo.
+./build/server/kinetri-server --listen=127.0.0.1:0 \
+  --metrics_listen=127.0.0.1:0 >out/server.log 2>&1 &
 server_pid=$!
 trap 'kill -TERM $server_pid 2>/dev/null; wait $server_pid 2>/dev/null || true' EXIT
 port=""
@@ -17,7 +20,8 @@ for _ in $(seq 100); do
   sleep 0.1
 done
 [[ -n "$port" ]] || { cat out/server.log; echo "server did not start" >&2; exit 1; }
-echo "kinetri-server is up on 127.0.0.1:$port (log: out/server.log)"
+metrics=$(sed -n 's/^kinetri-server: metrics on \([^ ]*\) .*/\1/p' out/server.log)
+echo "kinetri-server is up on 127.0.0.1:$port, metrics ${metrics:-off} (log: out/server.log)"
 ./build/client/kinetri-sim --server="127.0.0.1:$port" --mode=dla --n=6000 \
   --steps=400 --sigma=1.0 --svg=out/kinetri-dla.svg
 ./build/client/kinetri-sim --server="127.0.0.1:$port" --mode=brownian \

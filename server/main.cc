@@ -211,8 +211,10 @@ int main(int argc, char** argv) {
                    metrics_addr.c_str());
       return 1;
     }
-    std::printf("kinetri-server: metrics on http://%s/metrics (port %d)\n",
-                metrics_addr.c_str(), port);
+    // The address with the port it got (port 0 asks for a free one).
+    const std::string host = metrics_addr.substr(0, metrics_addr.rfind(':'));
+    std::printf("kinetri-server: metrics on http://%s:%d/metrics (port %d)\n",
+                host.c_str(), port, port);
   }
 
   // Security: TLS (optionally mutual), bearer tokens with tenants, and
