@@ -162,6 +162,10 @@ struct QueryBatch {
   std::vector<Query> queries;
   std::vector<uint32_t> order;
   size_t size() const { return queries.size(); }
+  // Queries of points (each starts at its site), not of positions.
+  bool of_points() const {
+    return !queries.empty() && queries[0].start_site != kNoVertex;
+  }
 };
 
 // The queries of positions and of points, their arguments already checked
@@ -772,8 +776,7 @@ absl::StatusOr<NeighborLists> KNearestImpl(const Triangulation& t,
   // across empty space, scan after scan (8-NN of 100K positions on 1M
   // clustered points: 40 ms by the graph, 95 ms from a sparse index); kAuto
   // sends position batches to the graph there.
-  const bool of_points =
-      !queries.queries.empty() && queries.queries[0].start_site != kNoVertex;
+  const bool of_points = queries.of_points();
   if (index != nullptr && index->sparse() && !of_points &&
       options.plan == RowOptions::Plan::kAuto) {
     index = nullptr;
@@ -941,8 +944,6 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
   const std::shared_ptr<const CellIndex> index =
       RadiusCells(t, r, queries.size(), options);
   const CellIndex* cells = index.get();
-  const bool of_points =
-      !queries.queries.empty() && queries.queries[0].start_site != kNoVertex;
   return RunRows(
       t, queries, limits, options.distances,
       [r, max_results, options, cells](
@@ -1153,7 +1154,8 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
       /*width=*/0, /*find_root=*/true,
       // Positions walk to their nearest site whether or not cells answer
       // (the rows make the walks shorter); points start at their site.
-      NeedRows(t, cells != nullptr && of_points, queries.size(), options));
+      NeedRows(t, cells != nullptr && queries.of_points(), queries.size(),
+               options));
 }
 
 // The rows of `q` from t's device executor (t.device_executor() is set;
@@ -1210,31 +1212,20 @@ absl::StatusOr<NeighborLists> AllNearestNeighbors(const Triangulation& t) {
   std::vector<double> dist(n, 0.0);
   t.Run([&] {
     // Internal (Hilbert) order keeps memory access local. The results are
-    // written in that order, then gathered into external order: writes
-    // scattered over the answer missed the cache at every point (about 20
-    // of 46 ms at 1M points), reads gathered with prefetching overlap.
+    // written in that order, then gathered into external order (reads
+    // gathered with prefetching overlap; writes scattered over the answer
+    // cost a few ms more at 1M points).
     struct Nearest {
       double d;
       uint32_t id;
     };
     std::unique_ptr<Nearest[]> by_int(new Nearest[n]);
-    if (v.planar() && v.num_sites == n) {
-      // Every point is a site of its own: the nearest site is the answer.
-      ParallelFor(0, n, [&](size_t in) {
-        const uint32_t s = static_cast<uint32_t>(in);
-        const uint32_t w = FirstNeighbor(v, v.pos[s], s, false);
-        by_int[in] = w == kNoVertex ? Nearest{0.0, kNoVertex}
-                                    : Nearest{Distance(v.pos[s], v.pos[w]),
-                                              v.ext_of_int[w]};
-      });
-    } else {
-      ParallelFor(0, n, [&](size_t in) {
-        Nearest& r = by_int[in];
-        if (!NearestOtherPoint(v, static_cast<uint32_t>(in), &r.id, &r.d)) {
-          r = {0.0, kNoVertex};
-        }
-      });
-    }
+    ParallelFor(0, n, [&](size_t in) {
+      Nearest& r = by_int[in];
+      if (!NearestOtherPoint(v, static_cast<uint32_t>(in), &r.id, &r.d)) {
+        r = {0.0, kNoVertex};
+      }
+    });
     ParallelFor(0, n, [&](size_t ext) {
       if (ext + 32 < n) __builtin_prefetch(&by_int[v.int_of_ext[ext + 32]]);
       const Nearest& r = by_int[v.int_of_ext[ext]];

@@ -69,6 +69,16 @@ KINETRI_HD inline uint32_t WalkToNearestSite(const TriangulationView& v,
 KINETRI_HD inline bool NearestOtherPoint(const TriangulationView& v,
                                          uint32_t in, uint32_t* nn_ext,
                                          double* distance) {
+  if (v.num_sites == v.num_points) {
+    // Every point is a site of its own: the nearest site is the answer.
+    const uint32_t w = FirstNeighbor(v, v.pos[in], in, false);
+    if (w == kNoVertex) return false;
+    const double dx = v.pos[in].x - v.pos[w].x;
+    const double dy = v.pos[in].y - v.pos[w].y;
+    *nn_ext = v.ext_of_int[w];
+    *distance = sqrt(dx * dx + dy * dy);
+    return true;
+  }
   const uint32_t ext = v.ext_of_int[in];
   const uint32_t site = v.rep[in];
   uint32_t best = kNoVertex;

@@ -214,14 +214,6 @@ struct FlipOp {
   KINETRI_HD void operator()(uint32_t e) const { m.Flip(e); }
 };
 
-struct EdgeIllegal {
-  MeshView m;
-  const Vec2* pos;
-  KINETRI_HD bool operator()(uint32_t e) const {
-    return rules::IsIllegal(m, pos, e);
-  }
-};
-
 struct IsCanonical {
   MeshView m;
   KINETRI_HD bool operator()(uint32_t e) const { return e < m.twin[e]; }
