@@ -16,6 +16,7 @@
 #include "core/cell_index.h"
 #include "core/hint_grid.h"
 #include "core/parallel.h"
+#include "core/nearest_by_triangles.h"
 #include "core/predicates.h"
 #include "core/query_walks.h"
 
@@ -1202,19 +1203,47 @@ absl::StatusOr<NeighborLists> AllNearestNeighbors(const Triangulation& t) {
     q.kind = device::DeviceQuery::Kind::kAllNearest;
     return DeviceRows(t, q);
   }
-  // One walk around each site's fan (the rows are used when a query built
-  // them since the step, never built for this).
   const TriangulationView v = t.view_with_cached_rows();
   const uint32_t n = v.num_points;
   NeighborLists out;
+  if (v.planar() && v.num_sites == n) {
+    // Every point is a vertex (so each has a neighbour and a row of one):
+    // one pass over the triangles, whose loads are independent, instead of
+    // a walk around each fan, whose loads wait for each other. Its results
+    // are by internal (Hilbert) id; they are gathered into external order
+    // (reads gathered with prefetching overlap; scattered writes cost more).
+    out.offsets.resize(size_t{n} + 1);
+    out.ids.resize(n);
+    out.distances.resize(n);
+    out.truncated.assign(n, 0);
+    std::atomic<bool> lonely{false};  // a vertex without neighbours: none
+    t.Run([&] {
+      std::unique_ptr<NearestNeighbor[]> by_int(new NearestNeighbor[n]);
+      NearestNeighborsByTriangles(v.mesh, v.pos, v.vertex_edge, n,
+                                  by_int.get());
+      ParallelFor(0, n, [&](size_t ext) {
+        if (ext + 32 < n) __builtin_prefetch(&by_int[v.int_of_ext[ext + 32]]);
+        const NearestNeighbor& r = by_int[v.int_of_ext[ext]];
+        if (r.id == kNoVertex) {
+          lonely.store(true, std::memory_order_relaxed);
+          return;
+        }
+        out.ids[ext] = v.ext_of_int[r.id];
+        out.distances[ext] = std::sqrt(r.d2);
+        out.offsets[ext + 1] = ext + 1;
+      });
+    });
+    out.offsets[0] = 0;
+    if (!lonely.load()) return out;
+    out = NeighborLists{};
+  }
+  // One walk around each site's fan (the rows are used when a query built
+  // them since the step, never built for this).
   out.offsets.assign(size_t{n} + 1, 0);
   std::vector<uint32_t> nn(n, kNoVertex);
   std::vector<double> dist(n, 0.0);
   t.Run([&] {
-    // Internal (Hilbert) order keeps memory access local. The results are
-    // written in that order, then gathered into external order (reads
-    // gathered with prefetching overlap; writes scattered over the answer
-    // cost a few ms more at 1M points).
+    // Internal (Hilbert) order keeps memory access local, as above.
     struct Nearest {
       double d;
       uint32_t id;
