@@ -15,8 +15,8 @@
 #include "absl/strings/str_cat.h"
 #include "core/cell_index.h"
 #include "core/hint_grid.h"
-#include "core/parallel.h"
 #include "core/nearest_by_triangles.h"
+#include "core/parallel.h"
 #include "core/predicates.h"
 #include "core/query_walks.h"
 
