@@ -1221,15 +1221,22 @@ absl::StatusOr<NeighborLists> AllNearestNeighbors(const Triangulation& t) {
       std::unique_ptr<NearestNeighbor[]> by_int(new NearestNeighbor[n]);
       NearestNeighborsByTriangles(v.mesh, v.pos, v.vertex_edge, n,
                                   by_int.get());
-      ParallelFor(0, n, [&](size_t ext) {
-        if (ext + 32 < n) __builtin_prefetch(&by_int[v.int_of_ext[ext + 32]]);
-        const NearestNeighbor& r = by_int[v.int_of_ext[ext]];
+      // To external ids and distances (d2 holds the distance from here on)
+      // while in internal order, where the reads of ext_of_int are local.
+      ParallelFor(0, n, [&](size_t in) {
+        NearestNeighbor& r = by_int[in];
         if (r.id == kNoVertex) {
           lonely.store(true, std::memory_order_relaxed);
           return;
         }
-        out.ids[ext] = v.ext_of_int[r.id];
-        out.distances[ext] = std::sqrt(r.d2);
+        r.id = v.ext_of_int[r.id];
+        r.d2 = std::sqrt(r.d2);
+      });
+      ParallelFor(0, n, [&](size_t ext) {
+        if (ext + 32 < n) __builtin_prefetch(&by_int[v.int_of_ext[ext + 32]]);
+        const NearestNeighbor& r = by_int[v.int_of_ext[ext]];
+        out.ids[ext] = r.id;
+        out.distances[ext] = r.d2;
         out.offsets[ext + 1] = ext + 1;
       });
     });
