@@ -18,11 +18,12 @@ Mesh::Mesh(uint32_t num_vertices, std::vector<uint32_t> origin,
   RebuildVertexEdges();
 }
 
-void Mesh::Assign(std::vector<uint32_t> origin, std::vector<uint32_t> twin,
-                  std::vector<uint32_t> vertex_edge) {
-  origin_ = std::move(origin);
-  twin_ = std::move(twin);
-  vertex_edge_ = std::move(vertex_edge);
+void Mesh::SwapArrays(std::vector<uint32_t>* origin,
+                      std::vector<uint32_t>* twin,
+                      std::vector<uint32_t>* vertex_edge) {
+  origin_.swap(*origin);
+  twin_.swap(*twin);
+  vertex_edge_.swap(*vertex_edge);
 }
 
 void Mesh::RebuildVertexEdges() {

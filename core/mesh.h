@@ -164,10 +164,11 @@ class Mesh {
   const std::vector<uint32_t>& vertex_edge() const { return vertex_edge_; }
   std::vector<uint32_t>& mutable_vertex_edge() { return vertex_edge_; }
 
-  // Replaces the arrays with a copy made elsewhere (the device executor's
-  // download): same number of vertices and half-edges, no free slots added.
-  void Assign(std::vector<uint32_t> origin, std::vector<uint32_t> twin,
-              std::vector<uint32_t> vertex_edge);
+  // Swaps the arrays with a copy made elsewhere (the device executor's
+  // download, which keeps the old ones for its next download): same
+  // number of vertices and half-edges, no free slots added.
+  void SwapArrays(std::vector<uint32_t>* origin, std::vector<uint32_t>* twin,
+                  std::vector<uint32_t>* vertex_edge);
 
   // After Flip(e): points vertex_edge of the four quad vertices at
   // half-edges that now leave them (call serially: deterministic).

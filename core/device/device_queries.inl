@@ -52,6 +52,7 @@
 #include "core/device/device_executor.h"
 #include "core/device/profile.h"
 #include "core/device/scratch_pool.inl"
+#include "core/device/staging.inl"
 #include "core/hint_grid.h"
 #include "core/query_search.h"
 #include "core/query_types.h"
@@ -264,11 +265,11 @@ T* QRaw(qthr::device_vector<T>& v) {
   return qthr::raw_pointer_cast(v.data());
 }
 
+// to[at, at + n) = from[0, n), through the query's pinned staging.
 template <typename T>
-void Download(const qthr::device_vector<T>& from, size_t n, std::vector<T>* to,
-              size_t at) {
-  if (n == 0) return;
-  qthr::copy(from.begin(), from.begin() + n, to->begin() + at);
+void Download(Staging& staging, qthr::device_vector<T>& from, size_t n,
+              std::vector<T>* to, size_t at) {
+  staging.ToHost(QRaw(from), n, to->data() + at, Stream{});
 }
 
 double SecondsSince(std::chrono::steady_clock::time_point t0) {
@@ -368,6 +369,7 @@ struct Scratch {
   std::vector<uint64_t> h_offsets;
   std::vector<uint8_t> h_truncated;
   std::vector<uint32_t> h_found;
+  Staging staging;  // the answers' downloads
   uint64_t bytes() const {
     return items.capacity() * sizeof(QueryItem) +
            (targets.capacity() + found.capacity() + ids.capacity()) *
@@ -461,7 +463,7 @@ class QueryEngine {
   // each call counts one device algorithm.
   PoolPolicy P() {
     calls_.fetch_add(1, std::memory_order_relaxed);
-    return Policy(pool_);
+    return Policy(pool_, Stream{});  // the default stream
   }
 
   // Uploads the view when its generation changed (concurrent callers of one
@@ -536,8 +538,8 @@ class QueryEngine {
                    AllNearest{view_, QRaw(w->ids), QRaw(w->dist)});
     std::vector<uint32_t> h_nn(n);
     std::vector<double> h_dist(n);
-    Download(w->ids, n, &h_nn, 0);
-    Download(w->dist, n, &h_dist, 0);
+    Download(w->staging, w->ids, n, &h_nn, 0);
+    Download(w->staging, w->dist, n, &h_dist, 0);
     Release(w);
     for (uint32_t i = 0; i < n; ++i) {
       out.offsets[i + 1] = out.offsets[i] + (h_nn[i] != kNoVertex ? 1 : 0);
@@ -565,7 +567,12 @@ class QueryEngine {
   }
   void Release(Scratch* s) {
     // A big answer's buffers are not kept (kDeviceQueryScratchBytes).
-    if (s->bytes() > kDeviceQueryScratchBytes) *s = Scratch{};
+    // The pinned staging (host memory, two chunks) stays.
+    if (s->bytes() > kDeviceQueryScratchBytes) {
+      Staging staging = std::move(s->staging);
+      *s = Scratch{};
+      s->staging = std::move(staging);
+    }
     // The pool's blocks serve the blocks of one call; none is kept after
     // it (kDeviceQueryScratchBytes bounds what stays, the Scratch above).
     pool_.Trim(0);
@@ -691,10 +698,10 @@ class QueryEngine {
         out->truncated[begin + i] = w.h_truncated[i];
       }
       out->ids.resize(total + rows_total);
-      Download(w.ids, rows_total, &out->ids, total);
+      Download(w.staging, w.ids, rows_total, &out->ids, total);
       if (distances) {
         out->distances.resize(total + rows_total);
-        Download(w.dist, rows_total, &out->distances, total);
+        Download(w.staging, w.dist, rows_total, &out->distances, total);
       }
       total += rows_total;
       begin += rows;

@@ -47,6 +47,7 @@
 #include "core/device/device_queries.inl"
 #include "core/device/profile.h"
 #include "core/device/scratch_pool.inl"
+#include "core/device/staging.inl"
 #include "core/flip_rules.h"
 #include "core/mesh.h"
 #include "core/vec2.h"
@@ -480,7 +481,16 @@ double Since(std::chrono::steady_clock::time_point t0) {
 
 class RoundDeviceExecutor final : public DeviceExecutor {
  public:
-  explicit RoundDeviceExecutor(DeviceBackend backend) : backend_(backend) {}
+  explicit RoundDeviceExecutor(DeviceBackend backend) : backend_(backend) {
+#if THRUST_DEVICE_SYSTEM == THRUST_DEVICE_SYSTEM_CUDA
+    // The session's own stream. Blocking (not cudaStreamNonBlocking): the
+    // device vectors' own operations (resize, assign) run on the default
+    // stream and stay in order with it.
+    thr::cuda_cub::throw_on_error(
+        cudaStreamCreateWithFlags(&stream_, cudaStreamDefault),
+        "device executor: creating its stream");
+#endif
+  }
 
   DeviceBackend backend() const override { return backend_; }
   void Invalidate() override { host_changed_ = true; }
@@ -510,6 +520,10 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   }
 
   ~RoundDeviceExecutor() override {
+#if THRUST_DEVICE_SYSTEM == THRUST_DEVICE_SYSTEM_CUDA
+    cudaStreamSynchronize(stream_);
+    cudaStreamDestroy(stream_);
+#endif
     if (DeviceProfileLevel() == 0) return;
     std::fprintf(
         stderr,
@@ -544,7 +558,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
         AttemptOnDevice(mesh, to, candidates, seeds, rebuild_fraction, cancel);
     // Whatever the attempt launched last has finished (a stopped attempt
     // may end on calls the host did not wait for).
-    Drain(pool_);
+    Drain(stream_);
     clock_.Stop();
     out.device_calls = calls_ - calls;
     out.host_waits = waits_ - waits;
@@ -589,10 +603,9 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     if (host_changed_ || base_origin_.size() != mesh.num_half_edges() ||
         nv_ != nv) {
       // The host mesh changed (or was never here): it becomes the base.
-      base_origin_.assign(mesh.origin().begin(), mesh.origin().end());
-      base_twin_.assign(mesh.twin().begin(), mesh.twin().end());
-      base_vertex_edge_.assign(mesh.vertex_edge().begin(),
-                               mesh.vertex_edge().end());
+      Upload(mesh.origin(), base_origin_);
+      Upload(mesh.twin(), base_twin_);
+      Upload(mesh.vertex_edge(), base_vertex_edge_);
       out.bytes_uploaded += 8ull * mesh.num_half_edges() + 4ull * nv;
       nv_ = nv;
       host_changed_ = false;
@@ -609,13 +622,14 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       vertex_edge_.assign(base_vertex_edge_.begin(), base_vertex_edge_.end());
       working_is_base_ = true;
     }
-    pos_.assign(to.begin(), to.end());
+    pos_.resize(to.size());
+    staging_.ToDevice(to.data(), to.size(), Raw(pos_), stream_);
     out.bytes_uploaded += sizeof(Vec2) * to.size();
     if (tri_claim_.size() != nt) tri_claim_.assign(nt, kNoEdge);
     if (vert_claim_.size() != nv) vert_claim_.assign(nv, kNoEdge);
     if (last_.size() != nv) last_.assign(nv, 0);
     if (candidates != nullptr) {
-      seeds_.assign(candidates->begin(), candidates->end());
+      Upload(*candidates, seeds_);
       out.bytes_uploaded += 4ull * candidates->size();
     }
     out.transfer_seconds += Since(t0);
@@ -662,7 +676,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     } else {
       const size_t ns = seeds->size(), nt_touched = touched_.size();
       next_.resize(ns + nt_touched);
-      thr::copy(seeds->begin(), seeds->end(), next_.begin());
+      staging_.ToDevice(seeds->data(), ns, Raw(next_), stream_);
       thr::copy(touched_.begin(), touched_.end(), next_.begin() + ns);
       out.bytes_uploaded += 4ull * ns;
       SortUnique(next_);
@@ -681,12 +695,13 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     // Download: the host mesh becomes the device mesh.
     clock_.Mark(__LINE__);
     t0 = std::chrono::steady_clock::now();
-    std::vector<uint32_t> origin(origin_.size()), twin(twin_.size()),
-        vertex_edge(nv);
-    thr::copy(origin_.begin(), origin_.end(), origin.begin());
-    thr::copy(twin_.begin(), twin_.end(), twin.begin());
-    thr::copy(vertex_edge_.begin(), vertex_edge_.end(), vertex_edge.begin());
-    mesh.Assign(std::move(origin), std::move(twin), std::move(vertex_edge));
+    // Into host arrays kept from the previous download (the mesh's old
+    // ones, of the same size: no allocation, no zero fill), swapped in
+    // whole, so a failed copy leaves the host mesh as it was.
+    Download(origin_, &host_origin_);
+    Download(twin_, &host_twin_);
+    Download(vertex_edge_, &host_vertex_edge_);
+    mesh.SwapArrays(&host_origin_, &host_twin_, &host_vertex_edge_);
     out.bytes_downloaded += 8ull * mesh.num_half_edges() + 4ull * nv;
     out.transfer_seconds += Since(t0);
     out.fixed = true;
@@ -706,12 +721,22 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     ++calls_;
     ++waits_;
     clock_.Mark(line);
-    return Policy(pool_);
+    return Policy(pool_, stream_);
   }
   NoWaitPolicy A(int line = __builtin_LINE()) {
     ++calls_;
     clock_.Mark(line);
-    return PolicyNoWait(pool_);
+    return PolicyNoWait(pool_, stream_);
+  }
+
+  // Host -> device and back through the pinned staging, on the stream.
+  void Upload(const std::vector<uint32_t>& from, U32Vector& to) {
+    to.resize(from.size());
+    staging_.ToDevice(from.data(), from.size(), Raw(to), stream_);
+  }
+  void Download(U32Vector& from, std::vector<uint32_t>* to) {
+    to->resize(from.size());
+    staging_.ToHost(Raw(from), from.size(), to->data(), stream_);
   }
 
   void SortUnique(U32Vector& v) {
@@ -926,6 +951,11 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   thr::device_vector<uint8_t> flags_;
   thr::device_vector<rules::FixProposal> props_;
   ScratchPool pool_;     // Thrust's temporaries, kept across rounds and steps
+  Stream stream_{};      // every algorithm and copy of the attempts
+  Staging staging_;      // pinned chunks of the uploads and downloads
+  // The host arrays the next mesh download goes into (the host mesh's
+  // previous ones, swapped out by the last download).
+  std::vector<uint32_t> host_origin_, host_twin_, host_vertex_edge_;
   uint64_t calls_ = 0;   // device algorithms launched (P() and A() calls)
   uint64_t waits_ = 0;   // ... of which the host waited for (P() calls)
   CallSiteClock clock_;  // where the attempts' time goes, by call site

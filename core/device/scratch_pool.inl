@@ -121,31 +121,53 @@ class ScratchPool {
   size_t cached_bytes_ = 0;
 };
 
+// The stream a caller's device work is queued on: on a GPU, each executor
+// (each session) has its own (core/device/round_executor.inl), and the
+// queries use the default one (Stream{}); on CPU threads a call is done
+// when it returns and the stream is a placeholder.
+#if THRUST_DEVICE_SYSTEM == THRUST_DEVICE_SYSTEM_CUDA
+using Stream = cudaStream_t;
+#else
+using Stream = int;
+#endif
+
 // The execution policy of every Thrust call of the executor: the device
-// system, with temporary storage from `pool`.
+// system, with temporary storage from `pool`, on `stream`.
+#if THRUST_DEVICE_SYSTEM == THRUST_DEVICE_SYSTEM_CUDA
+using PoolPolicy = decltype(pthr::cuda::par(std::declval<ScratchPool&>())
+                                .on(std::declval<Stream>()));
+inline PoolPolicy Policy(ScratchPool& pool, Stream stream) {
+  return pthr::cuda::par(pool).on(stream);
+}
+#else
 using PoolPolicy = decltype(pthr::device(std::declval<ScratchPool&>()));
-inline PoolPolicy Policy(ScratchPool& pool) { return pthr::device(pool); }
+inline PoolPolicy Policy(ScratchPool& pool, Stream) {
+  return pthr::device(pool);
+}
+#endif
 
 // The same for calls whose results the host does not read: on the CUDA
 // system they return without waiting for the device (Thrust's par_nosync;
-// calls on the default stream run in order, and a call that returns a
-// value still waits for it); the TBB system always runs a call to its end.
-// Drain() waits for everything launched so far.
+// calls on one stream run in order, and a call that returns a value still
+// waits for it); the TBB system always runs a call to its end. Drain()
+// waits for everything queued on the stream so far.
 #if THRUST_DEVICE_SYSTEM == THRUST_DEVICE_SYSTEM_CUDA
-using NoWaitPolicy =
-    decltype(pthr::cuda::par_nosync(std::declval<ScratchPool&>()));
-inline NoWaitPolicy PolicyNoWait(ScratchPool& pool) {
-  return pthr::cuda::par_nosync(pool);
+using NoWaitPolicy = decltype(pthr::cuda::par_nosync(
+                                  std::declval<ScratchPool&>())
+                                  .on(std::declval<Stream>()));
+inline NoWaitPolicy PolicyNoWait(ScratchPool& pool, Stream stream) {
+  return pthr::cuda::par_nosync(pool).on(stream);
 }
-inline void Drain(ScratchPool& pool) {
-  NoWaitPolicy policy = PolicyNoWait(pool);
-  pthr::cuda_cub::throw_on_error(pthr::cuda_cub::synchronize(policy),
+inline void Drain(Stream stream) {
+  pthr::cuda_cub::throw_on_error(cudaStreamSynchronize(stream),
                                  "device executor: waiting for the device");
 }
 #else
 using NoWaitPolicy = PoolPolicy;
-inline NoWaitPolicy PolicyNoWait(ScratchPool& pool) { return Policy(pool); }
-inline void Drain(ScratchPool&) {}
+inline NoWaitPolicy PolicyNoWait(ScratchPool& pool, Stream stream) {
+  return Policy(pool, stream);
+}
+inline void Drain(Stream) {}
 #endif
 
 }  // namespace
