@@ -950,9 +950,9 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   U32Vector counters_;
   thr::device_vector<uint8_t> flags_;
   thr::device_vector<rules::FixProposal> props_;
-  ScratchPool pool_;     // Thrust's temporaries, kept across rounds and steps
-  Stream stream_{};      // every algorithm and copy of the attempts
-  Staging staging_;      // pinned chunks of the uploads and downloads
+  ScratchPool pool_;  // Thrust's temporaries, kept across rounds and steps
+  Stream stream_{};   // every algorithm and copy of the attempts
+  Staging staging_;   // pinned chunks of the uploads and downloads
   // The host arrays the next mesh download goes into (the host mesh's
   // previous ones, swapped out by the last download).
   std::vector<uint32_t> host_origin_, host_twin_, host_vertex_edge_;

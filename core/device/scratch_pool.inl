@@ -152,9 +152,9 @@ inline PoolPolicy Policy(ScratchPool& pool, Stream) {
 // waits for it); the TBB system always runs a call to its end. Drain()
 // waits for everything queued on the stream so far.
 #if THRUST_DEVICE_SYSTEM == THRUST_DEVICE_SYSTEM_CUDA
-using NoWaitPolicy = decltype(pthr::cuda::par_nosync(
-                                  std::declval<ScratchPool&>())
-                                  .on(std::declval<Stream>()));
+using NoWaitPolicy =
+    decltype(pthr::cuda::par_nosync(std::declval<ScratchPool&>())
+                 .on(std::declval<Stream>()));
 inline NoWaitPolicy PolicyNoWait(ScratchPool& pool, Stream stream) {
   return pthr::cuda::par_nosync(pool).on(stream);
 }
