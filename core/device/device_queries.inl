@@ -719,13 +719,15 @@ class QueryEngine {
     w.items.resize(nb);
     const qthr::counting_iterator<uint32_t> first(0), last(nb);
     if (q.by_ids) {
-      w.targets.assign(q.ids.begin() + begin, q.ids.begin() + begin + nb);
+      w.targets.resize(nb);
+      w.staging.ToDevice(q.ids.data() + begin, nb, QRaw(w.targets), Stream{});
       qthr::for_each(
           P(), first, last,
           PrepareIds{view_, QRaw(w.targets), q.exclude_self, QRaw(w.items)});
     } else {
-      w.positions.assign(q.positions.begin() + begin,
-                         q.positions.begin() + begin + nb);
+      w.positions.resize(nb);
+      w.staging.ToDevice(q.positions.data() + begin, nb, QRaw(w.positions),
+                         Stream{});
       qthr::for_each(
           P(), first, last,
           PreparePositions{view_, hints_, QRaw(w.positions), QRaw(w.items)});
