@@ -1123,13 +1123,18 @@ bool Triangulation::FinishLocalStep(std::vector<Vec2>& next,
   }
   report->reinsert_seconds += SecondsSince(t_insert);
   report->reinserted = static_cast<uint32_t>(reinsert.size());
+  for (uint32_t v : reinsert) hints[v] = kNoVertex;
   if (mesh_.has_free_triangles()) {
     mesh_.Compact();
     MeshChangedOnHost();
   }
   // Sites change only when points part from or join a site, and both go
-  // through re-insertion.
-  if (!reinsert.empty()) RefreshSites();
+  // through re-insertion. Without coincident points before, sites_ (every
+  // point) stays as it is unless a re-inserted point joined one.
+  const bool joined = std::any_of(
+      reinsert.begin(), reinsert.end(),
+      [&](uint32_t v) { return rep_[v] != v || dup_next_[v] != kNoVertex; });
+  if (has_duplicates_ || joined) RefreshSites();
   return true;
 }
 
@@ -1193,7 +1198,11 @@ bool Triangulation::RegionUpdate(std::vector<Vec2>& next,
   }
   report->filter_seconds += SecondsSince(t_filter);
   std::vector<uint32_t> removed;
-  std::vector<uint32_t> hints(n, kNoVertex);
+  // Walk starts of the vertices to re-insert: all kNoVertex between steps
+  // (FinishLocalStep resets what it used; a failed step drops them all),
+  // so no step fills 4 bytes per point.
+  std::vector<uint32_t>& hints = reinsert_hints_;
+  if (hints.size() != n) hints.assign(n, kNoVertex);
   RegionStepStats stats;
   const std::vector<uint32_t>& seeds = filtered ? loud : moved;
   const bool ok = seeds.empty() || region_executor_.Step(
@@ -1215,6 +1224,7 @@ bool Triangulation::RegionUpdate(std::vector<Vec2>& next,
   report->held_seconds += stats.held_seconds;
   if (!ok) {
     if (untouched != nullptr) *untouched = true;
+    hints.clear();
     return false;
   }
   reinsert.insert(reinsert.end(), removed.begin(), removed.end());
@@ -1228,6 +1238,7 @@ bool Triangulation::RegionUpdate(std::vector<Vec2>& next,
     motion_filter_.Invalidate();
   }
   if (!FinishLocalStep(next, std::move(reinsert), hints, report, reason)) {
+    hints.clear();
     return false;
   }
   if (recertify) {

@@ -394,6 +394,7 @@ class Triangulation {
   int filter_backoff_ = 0;  // the current wait after a failed filter
   bool too_tangled_ = false;
   std::vector<uint32_t> removal_touched_;
+  std::vector<uint32_t> reinsert_hints_;  // RegionUpdate's walk starts
   double baseline_span_ = 0.0;
   uint64_t steps_ = 0;
 };
