@@ -1129,12 +1129,10 @@ bool Triangulation::FinishLocalStep(std::vector<Vec2>& next,
     MeshChangedOnHost();
   }
   // Sites change only when points part from or join a site, and both go
-  // through re-insertion. Without coincident points before, sites_ (every
-  // point) stays as it is unless a re-inserted point joined one.
-  const bool joined = std::any_of(
-      reinsert.begin(), reinsert.end(),
-      [&](uint32_t v) { return rep_[v] != v || dup_next_[v] != kNoVertex; });
-  if (has_duplicates_ || joined) RefreshSites();
+  // through re-insertion: without coincident points before the step and
+  // none made by it (InsertBatch sets has_duplicates_ when a point joins a
+  // site), sites_ (every point) stays as it is.
+  if (has_duplicates_) RefreshSites();
   return true;
 }
 
