@@ -30,8 +30,9 @@ inline void Take(const Vec2* pos, uint32_t a, uint32_t b, double d2,
                  NearestNeighbor* out) {
   NearestNeighbor& r = out[a];
   // Decided by the rounded squared distances unless they are within their
-  // error of each other (as CompareCloserCached): without a branch, since
-  // whether a neighbour is the closest so far is a coin toss.
+  // error of each other (as CompareCloserCached). The choice is made
+  // without a branch, since whether a neighbour is the closest so far is a
+  // coin toss; only near-ties (rare) branch to the exact order.
   const double tol = internal::kDistErrBound * (d2 + r.d2);
   const bool closer = d2 < r.d2 - tol;
   if (closer || d2 > r.d2 + tol) {

@@ -1206,89 +1206,64 @@ absl::StatusOr<NeighborLists> AllNearestNeighbors(const Triangulation& t) {
   const TriangulationView v = t.view_with_cached_rows();
   const uint32_t n = v.num_points;
   NeighborLists out;
-  if (v.planar() && v.num_sites == n) {
-    // Every point is a vertex (so each has a neighbour and a row of one):
-    // one pass over the triangles, whose loads are independent, instead of
-    // a walk around each fan, whose loads wait for each other. Its results
-    // are by internal (Hilbert) id; they are gathered into external order
-    // (reads gathered with prefetching overlap; scattered writes cost more).
-    out.offsets.resize(size_t{n} + 1);
-    out.ids.resize(n);
-    out.distances.resize(n);
-    out.truncated.assign(n, 0);
-    std::atomic<bool> lonely{false};  // a vertex without neighbours: none
-    t.Run([&] {
-      std::unique_ptr<NearestNeighbor[]> by_int(new NearestNeighbor[n]);
+  out.offsets.resize(size_t{n} + 1);
+  out.ids.resize(n);
+  out.distances.resize(n);
+  out.truncated.assign(n, 0);
+  std::atomic<bool> missing{false};  // a point without another point
+  t.Run([&] {
+    // Each point's answer (external id, distance) in internal (Hilbert)
+    // order, where memory access is local; then gathered into external
+    // order (reads gathered with prefetching overlap; writes scattered
+    // over the answer cost more).
+    std::unique_ptr<NearestNeighbor[]> by_int(new NearestNeighbor[n]);
+    if (v.planar() && v.num_sites == n) {
+      // Every point is a vertex: one pass over the triangles, whose loads
+      // are independent, instead of a walk around each fan, whose loads
+      // wait for each other. Then to external ids and distances while in
+      // internal order, where the reads of ext_of_int are local.
       NearestNeighborsByTriangles(v.mesh, v.pos, v.vertex_edge, n,
                                   by_int.get());
-      // To external ids and distances (d2 holds the distance from here on)
-      // while in internal order, where the reads of ext_of_int are local.
       ParallelFor(0, n, [&](size_t in) {
         NearestNeighbor& r = by_int[in];
-        if (r.id == kNoVertex) {
-          lonely.store(true, std::memory_order_relaxed);
-          return;
-        }
+        if (r.id == kNoVertex) return;
         r.id = v.ext_of_int[r.id];
-        r.d2 = std::sqrt(r.d2);
+        r.d2 = std::sqrt(r.d2);  // the distance from here on
       });
-      ParallelFor(0, n, [&](size_t ext) {
-        if (ext + 32 < n) __builtin_prefetch(&by_int[v.int_of_ext[ext + 32]]);
-        const NearestNeighbor& r = by_int[v.int_of_ext[ext]];
-        out.ids[ext] = r.id;
-        out.distances[ext] = r.d2;
-        out.offsets[ext + 1] = ext + 1;
+    } else {
+      // Coincident points (or a line): each point's chain, then a walk
+      // around its site's fan (the rows are used when a query built them
+      // since the step, never built for this).
+      ParallelFor(0, n, [&](size_t in) {
+        NearestNeighbor& r = by_int[in];
+        if (!NearestOtherPoint(v, static_cast<uint32_t>(in), &r.id, &r.d2)) {
+          r = NearestNeighbor{};
+        }
       });
-    });
-    out.offsets[0] = 0;
-    if (!lonely.load()) return out;
-    out = NeighborLists{};
-  }
-  // One walk around each site's fan (the rows are used when a query built
-  // them since the step, never built for this).
-  out.offsets.assign(size_t{n} + 1, 0);
-  std::vector<uint32_t> nn(n, kNoVertex);
-  std::vector<double> dist(n, 0.0);
-  t.Run([&] {
-    // Internal (Hilbert) order keeps memory access local, as above.
-    struct Nearest {
-      double d;
-      uint32_t id;
-    };
-    std::unique_ptr<Nearest[]> by_int(new Nearest[n]);
-    ParallelFor(0, n, [&](size_t in) {
-      Nearest& r = by_int[in];
-      if (!NearestOtherPoint(v, static_cast<uint32_t>(in), &r.id, &r.d)) {
-        r = {0.0, kNoVertex};
-      }
-    });
+    }
     ParallelFor(0, n, [&](size_t ext) {
       if (ext + 32 < n) __builtin_prefetch(&by_int[v.int_of_ext[ext + 32]]);
-      const Nearest& r = by_int[v.int_of_ext[ext]];
-      nn[ext] = r.id;
-      dist[ext] = r.d;
+      const NearestNeighbor& r = by_int[v.int_of_ext[ext]];
+      if (r.id == kNoVertex) missing.store(true, std::memory_order_relaxed);
+      out.ids[ext] = r.id;
+      out.distances[ext] = r.d2;
+      out.offsets[ext + 1] = ext + 1;
     });
   });
-  out.truncated.assign(n, 0);
-  if (std::find(nn.begin(), nn.end(), kNoVertex) == nn.end()) {
-    // Every point has one (two points or more): the rows are the arrays.
-    t.Run([&] {
-      ParallelFor(0, n, [&](size_t i) { out.offsets[i + 1] = i + 1; });
-    });
-    out.ids = std::move(nn);
-    out.distances = std::move(dist);
-    return out;
-  }
+  out.offsets[0] = 0;
+  if (!missing.load()) return out;  // two points or more: a row each
+  // Rows without a point (fewer than two points), compacted in place.
+  uint64_t k = 0;
   for (uint32_t i = 0; i < n; ++i) {
-    out.offsets[i + 1] = out.offsets[i] + (nn[i] != kNoVertex ? 1 : 0);
+    if (out.ids[i] != kNoVertex) {
+      out.ids[k] = out.ids[i];
+      out.distances[k] = out.distances[i];
+      ++k;
+    }
+    out.offsets[i + 1] = k;
   }
-  out.ids.reserve(out.offsets[n]);
-  out.distances.reserve(out.offsets[n]);
-  for (uint32_t i = 0; i < n; ++i) {
-    if (nn[i] == kNoVertex) continue;
-    out.ids.push_back(nn[i]);
-    out.distances.push_back(dist[i]);
-  }
+  out.ids.resize(k);
+  out.distances.resize(k);
   return out;
 }
 
