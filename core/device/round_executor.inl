@@ -603,9 +603,9 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     if (host_changed_ || base_origin_.size() != mesh.num_half_edges() ||
         nv_ != nv) {
       // The host mesh changed (or was never here): it becomes the base.
-      Upload(mesh.origin(), base_origin_);
-      Upload(mesh.twin(), base_twin_);
-      Upload(mesh.vertex_edge(), base_vertex_edge_);
+      Upload(absl::MakeConstSpan(mesh.origin()), base_origin_);
+      Upload(absl::MakeConstSpan(mesh.twin()), base_twin_);
+      Upload(absl::MakeConstSpan(mesh.vertex_edge()), base_vertex_edge_);
       out.bytes_uploaded += 8ull * mesh.num_half_edges() + 4ull * nv;
       nv_ = nv;
       host_changed_ = false;
@@ -622,14 +622,13 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       vertex_edge_.assign(base_vertex_edge_.begin(), base_vertex_edge_.end());
       working_is_base_ = true;
     }
-    pos_.resize(to.size());
-    staging_.ToDevice(to.data(), to.size(), Raw(pos_), stream_);
+    Upload(to, pos_);
     out.bytes_uploaded += sizeof(Vec2) * to.size();
     if (tri_claim_.size() != nt) tri_claim_.assign(nt, kNoEdge);
     if (vert_claim_.size() != nv) vert_claim_.assign(nv, kNoEdge);
     if (last_.size() != nv) last_.assign(nv, 0);
     if (candidates != nullptr) {
-      Upload(*candidates, seeds_);
+      Upload(absl::MakeConstSpan(*candidates), seeds_);
       out.bytes_uploaded += 4ull * candidates->size();
     }
     out.transfer_seconds += Since(t0);
@@ -730,7 +729,8 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   }
 
   // Host -> device and back through the pinned staging, on the stream.
-  void Upload(const std::vector<uint32_t>& from, U32Vector& to) {
+  template <typename T>
+  void Upload(absl::Span<const T> from, thr::device_vector<T>& to) {
     to.resize(from.size());
     staging_.ToDevice(from.data(), from.size(), Raw(to), stream_);
   }
