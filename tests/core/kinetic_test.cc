@@ -529,9 +529,13 @@ TEST(Kinetic, StopAnywhereInTheStepIsUndoneAtOnce) {
     EXPECT_TRUE(t->Validate().ok());
     EXPECT_EQ(EdgesAsPositions(*t), before_edges);
     // ThreadSanitizer (which runs this test for the parallel undo) slows
-    // it 5-15x: only the normal and ASan builds hold it to 50 ms.
+    // it 5-15x, AddressSanitizer 2-3x (a stop at the step's end took 20-37
+    // ms there, once 51 ms beside another test on 2 cores): only the
+    // normal build holds it to 50 ms.
 #if defined(__SANITIZE_THREAD__)
     EXPECT_LT(ms, 1000.0);
+#elif defined(__SANITIZE_ADDRESS__)
+    EXPECT_LT(ms, 150.0);
 #else
     EXPECT_LT(ms, 50.0);
 #endif
