@@ -16,6 +16,7 @@
 #include <CGAL/Triangulation_vertex_base_with_info_2.h>
 
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -433,6 +434,11 @@ int main(int argc, char** argv) {
       std::vector<uint32_t> all(n);
       for (uint32_t i = 0; i < n; ++i) all[i] = i;
       auto last_progress = Clock::now();
+      // Each Kinetri engine's answers of the last step, in whose memory
+      // the step's queries are built (RowOptions::recycle), as a simulation
+      // loop that queries every step would: the peers write into buffers
+      // allocated before their timers too.
+      std::map<std::string, std::array<kc::NeighborLists, 6>> recycled;
       for (int s = -1; s < steps; ++s) {  // step -1: warm-up
         if (std::chrono::duration<double>(Clock::now() - last_progress)
                 .count() > 5.0) {
@@ -486,8 +492,13 @@ int main(int argc, char** argv) {
           // The queries: on the CPU executor (all threads) and on the
           // device executor (its own query path, cross-checked too).
           if (t != tri.get() && t != tri_device.get()) continue;
+          std::array<kc::NeighborLists, 6>& last = recycled[e];
+          auto in = [&last](int i, kc::RowOptions o = {}) {
+            o.recycle = &last[i];
+            return o;
+          };
           t0 = Clock::now();
-          auto knn = kc::KNearestOfPoints(*t, all, 8, true);
+          auto knn = kc::KNearestOfPoints(*t, all, 8, true, {}, in(0));
           rec(e, "knn8", Ms(t0));
           // Radius rows in the peers' output form: the set of neighbour
           // ids, unordered, no distances.
@@ -496,21 +507,21 @@ int main(int argc, char** argv) {
           set_only.distances = false;
           set_only.plan = radius_plan;
           t0 = Clock::now();
-          auto q8 =
-              kc::WithinRadiusOfPoints(*t, all, r8, true, 0, {}, set_only);
+          auto q8 = kc::WithinRadiusOfPoints(*t, all, r8, true, 0, {},
+                                             in(1, set_only));
           rec(e, "radius8", Ms(t0));
           t0 = Clock::now();
-          auto q32 =
-              kc::WithinRadiusOfPoints(*t, all, r32, true, 0, {}, set_only);
+          auto q32 = kc::WithinRadiusOfPoints(*t, all, r32, true, 0, {},
+                                              in(2, set_only));
           rec(e, "radius32", Ms(t0));
           t0 = Clock::now();
-          auto pnn = kc::Nearest(*t, qs);
+          auto pnn = kc::KNearest(*t, qs, 1, {}, in(3));  // Nearest
           rec(e, "points_nn", Ms(t0));
           t0 = Clock::now();
-          auto pknn = kc::KNearest(*t, qs, 8);
+          auto pknn = kc::KNearest(*t, qs, 8, {}, in(4));
           rec(e, "points_knn8", Ms(t0));
           t0 = Clock::now();
-          auto pr8 = kc::WithinRadius(*t, qs, r8, 0, {}, set_only);
+          auto pr8 = kc::WithinRadius(*t, qs, r8, 0, {}, in(5, set_only));
           rec(e, "points_radius8", Ms(t0));
           if (!knn.ok() || !q8.ok() || !q32.ok() || !pnn.ok() || !pknn.ok() ||
               !pr8.ok()) {
@@ -533,6 +544,8 @@ int main(int argc, char** argv) {
               a.qr8_count.push_back(pr8->row_size(i));
             }
           }
+          last = {*std::move(knn), *std::move(q8),   *std::move(q32),
+                  *std::move(pnn), *std::move(pknn), *std::move(pr8)};
         }
         if (on("cgal-rebuild")) {  // spatially sorted insertion
           const auto t0 = Clock::now();

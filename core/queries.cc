@@ -270,16 +270,21 @@ inline void CopyIds(const uint32_t* from, uint64_t len, uint32_t* to) {
 // that walk the graph read each site's neighbours off the mesh (the rows
 // are still used where an earlier batch of the step built them).
 template <typename RowFn>
-absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
-                                      const QueryBatch& batch,
-                                      QueryLimits limits, bool distances,
-                                      RowFn&& row_fn, size_t width = 0,
-                                      bool find_root = true,
-                                      bool build_rows = true) {
+absl::StatusOr<NeighborLists> RunRows(
+    const Triangulation& t, const QueryBatch& batch, QueryLimits limits,
+    bool distances, RowFn&& row_fn, size_t width = 0, bool find_root = true,
+    bool build_rows = true, NeighborLists* recycle = nullptr) {
   const std::vector<Query>& queries = batch.queries;
   const size_t nq = queries.size();
   if (t.num_sites() == 0) width = 0;
+  // The answer is built in the recycled one's memory, if any (resized, not
+  // cleared first: a vector that keeps its size is not written twice).
   NeighborLists fixed;
+  if (recycle != nullptr) {
+    fixed = std::move(*recycle);
+    *recycle = NeighborLists();
+    if (!distances) fixed.distances.clear();
+  }
   if (width > 0) {
     const uint64_t all = uint64_t{nq} * width;
     if (limits.max_total_results && all > limits.max_total_results) {
@@ -370,8 +375,21 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
           [&](size_t b) {
             std::vector<uint32_t>& ids = block_ids[b];
             std::vector<Hit>& row = Scratch<Hit>();
-            for (size_t j = b * kBlock; j < std::min(nq, (b + 1) * kBlock);
-                 ++j) {
+            const size_t first = b * kBlock;
+            const size_t last = std::min(nq, first + kBlock);
+            // Fixed-width rows are staged in processing order and copied
+            // to their requests' places once the block is done: written
+            // straight there, every row was a scattered store (request
+            // order is not spatial order) that stalled the search (8-NN
+            // of all 100K points: 17.4 ms against 13.5 when ids happened
+            // to follow the spatial order).
+            std::vector<uint32_t>& staged_ids = Scratch<uint32_t>();
+            std::vector<double>& staged_dist = Scratch<double>();
+            if (width > 0) {
+              staged_ids.resize(kBlock * width);
+              if (distances) staged_dist.resize(kBlock * width);
+            }
+            for (size_t j = first; j < last; ++j) {
               if (stop.load(std::memory_order_relaxed)) return;
               if (limits.cancel != nullptr && j % 64 == 0 &&
                   limits.cancel->Cancelled()) {
@@ -414,13 +432,13 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
                   stop.store(true, std::memory_order_relaxed);
                   return;
                 }
-                const size_t at = size_t{order[j]} * width;
+                const size_t at = (j - first) * width;
                 for (size_t c = 0; c < width; ++c) {
-                  fixed.ids[at + c] = row[c].ext;
+                  staged_ids[at + c] = row[c].ext;
                 }
                 if (distances) {
                   for (size_t c = 0; c < width; ++c) {
-                    fixed.distances[at + c] = row[c].dist;
+                    staged_dist[at + c] = row[c].dist;
                   }
                 }
                 continue;
@@ -466,6 +484,26 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
                 }
               }
             }
+            if (width == 0) return;
+            // The block's rows to their places, each destination fetched
+            // a few rows ahead so that the stores' misses overlap.
+            constexpr size_t kAhead = 8;
+            for (size_t j = first; j < last; ++j) {
+              if (j + kAhead < last) {
+                const size_t ahead = size_t{order[j + kAhead]} * width;
+                __builtin_prefetch(fixed.ids.data() + ahead, 1);
+                if (distances) {
+                  __builtin_prefetch(fixed.distances.data() + ahead, 1);
+                }
+              }
+              const size_t at = size_t{order[j]} * width;
+              const size_t from = (j - first) * width;
+              CopyIds(staged_ids.data() + from, width, fixed.ids.data() + at);
+              if (distances) {
+                std::copy_n(staged_dist.data() + from, width,
+                            fixed.distances.data() + at);
+              }
+            }
           },
           1);
       ParallelFor(0, rows_kept, [&](size_t j) {
@@ -487,7 +525,7 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
     // The answer was admitted whole already.
     limits.admit = nullptr;
     return RunRows(t, batch, limits, distances, row_fn, 0, find_root,
-                   build_rows);
+                   build_rows, &fixed);
   }
   if (width > 0) {
     fixed.offsets.resize(nq + 1);
@@ -496,7 +534,7 @@ absl::StatusOr<NeighborLists> RunRows(const Triangulation& t,
     fixed.truncated.assign(nq, 0);
     return fixed;
   }
-  NeighborLists out;
+  NeighborLists out = std::move(fixed);
   out.offsets.assign(nq + 1, 0);
   for (size_t i = 0; i < nq; ++i) {
     out.offsets[i + 1] = out.offsets[i] + row_size[i];
@@ -805,7 +843,7 @@ absl::StatusOr<NeighborLists> KNearestImpl(const Triangulation& t,
       },
       // Every row holds k points when the set has more than k.
       t.size() > want ? want : 0, /*find_root=*/cells == nullptr,
-      NeedRows(t, cells != nullptr, queries.size(), options));
+      NeedRows(t, cells != nullptr, queries.size(), options), options.recycle);
 }
 
 // Disks expected to hold at least this many sites are scanned in a cell
@@ -1156,7 +1194,8 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
       // Positions walk to their nearest site whether or not cells answer
       // (the rows make the walks shorter); points start at their site.
       NeedRows(t, cells != nullptr && queries.of_points(), queries.size(),
-               options));
+               options),
+      options.recycle);
 }
 
 // The rows of `q` from t's device executor (t.device_executor() is set;

@@ -59,7 +59,7 @@ namespace kinetri::core {
 absl::StatusOr<NeighborLists> AllNearestNeighbors(const Triangulation& t);
 
 // k nearest points of each position, closest first, with distances. Of
-// `options` only the plan and batch_queries apply: kAuto scans a cell
+// `options` only the plan, batch_queries and recycle apply: kAuto scans a cell
 // index for large batches on evenly spread sets, kGraph always expands
 // over the graph, kCells always scans cells (rows are identical).
 absl::StatusOr<NeighborLists> KNearest(const Triangulation& t,

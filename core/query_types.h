@@ -47,6 +47,12 @@ struct RowOptions {
   // The whole batch's number of queries when it is asked in blocks (the
   // server does): kAuto plans for the batch, not for one block.
   uint64_t batch_queries = 0;
+  // An earlier answer whose memory the host executors may build this one
+  // in (it is left empty or in an unspecified state). A loop that asks the
+  // same query every step passes the last step's answer: a fresh answer's
+  // memory is first touched while the rows are written (one page fault per
+  // 4 KiB: about 1 ms for the 9.6 MB of 8-NN rows of 100K points).
+  NeighborLists* recycle = nullptr;
 };
 
 struct QueryLimits {

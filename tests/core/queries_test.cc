@@ -12,6 +12,7 @@
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <functional>
 #include <numeric>
 #include <random>
 #include <thread>
@@ -543,6 +544,84 @@ TEST(Queries, TotalLimitStopsTheWork) {
 // kAdmitStep covering every result kept; its refusal stops the query and is
 // what the query returns. A k-NN answer (k per query) is admitted whole
 // before it is built.
+void ExpectSameAnswer(const NeighborLists& a, const NeighborLists& b,
+                      const char* what) {
+  EXPECT_EQ(a.offsets, b.offsets) << what;
+  EXPECT_EQ(a.ids, b.ids) << what;
+  EXPECT_EQ(a.distances, b.distances) << what;
+  EXPECT_EQ(a.truncated, b.truncated) << what;
+}
+
+// RowOptions::recycle: an answer built in an earlier answer's memory is the
+// answer built fresh, whatever the earlier one held (another kind, size,
+// with or without distances); the host executors take its memory.
+TEST(Queries, RecycledAnswersAreTheSameAnswers) {
+  for (const bool clustered : {false, true}) {
+    const auto pts = clustered ? testing::ClusteredPoints(12000, 7)
+                               : testing::UniformPoints(12000, 7);
+    auto t = Make(pts);
+    ASSERT_TRUE(t.ok());
+    std::vector<uint32_t> ids(pts.size());
+    std::iota(ids.begin(), ids.end(), 0u);
+    const std::vector<Vec2> qs = QueryPoints(pts, 2000, 8);
+    const double r = clustered ? 0.004 : 0.02;
+    RowOptions sets;
+    sets.distances = false;
+    sets.closest_first = false;
+    // Each query, built fresh.
+    using Ask = std::function<absl::StatusOr<NeighborLists>(RowOptions)>;
+    const std::vector<std::pair<const char*, Ask>> asks = {
+        {"knn8 of points",
+         [&](RowOptions o) {
+           return KNearestOfPoints(*t, ids, 8, true, {}, o);
+         }},
+        {"knn5 of positions",
+         [&](RowOptions o) { return KNearest(*t, qs, 5, {}, o); }},
+        {"radius of points",
+         [&](RowOptions o) {
+           return WithinRadiusOfPoints(*t, ids, r, true, 0, {}, o);
+         }},
+        {"radius sets of points",
+         [&](RowOptions o) {
+           sets.recycle = o.recycle;
+           return WithinRadiusOfPoints(*t, ids, r, false, 0, {}, sets);
+         }},
+        {"radius of positions, cut at 3",
+         [&](RowOptions o) { return WithinRadius(*t, qs, r, 3, {}, o); }},
+    };
+    std::vector<NeighborLists> fresh;
+    for (const auto& [what, ask] : asks) {
+      auto a = ask({});
+      ASSERT_TRUE(a.ok()) << what << ": " << a.status();
+      fresh.push_back(*std::move(a));
+    }
+    const bool host = t->device_executor() == nullptr;
+    // Every query in the memory of every answer (itself included).
+    for (size_t i = 0; i < asks.size(); ++i) {
+      for (size_t j = 0; j < asks.size(); ++j) {
+        // (The device executor builds its answers its own way: once.)
+        if (!host && j != i) continue;
+        NeighborLists old = fresh[j];
+        const uint32_t* old_ids = old.ids.data();
+        const bool fits = old.ids.capacity() >= fresh[i].ids.size();
+        RowOptions o;
+        o.recycle = &old;
+        auto a = asks[i].second(o);
+        ASSERT_TRUE(a.ok()) << asks[i].first << ": " << a.status();
+        ExpectSameAnswer(*a, fresh[i], asks[i].first);
+        if (host) {
+          EXPECT_TRUE(old.ids.empty())
+              << asks[i].first << " in " << asks[j].first;
+          if (fits) {
+            EXPECT_EQ(a->ids.data(), old_ids)
+                << asks[i].first << " in " << asks[j].first;
+          }
+        }
+      }
+    }
+  }
+}
+
 TEST(Queries, AdmitGrowsWithTheAnswer) {
   const auto pts = testing::UniformPoints(10000, 33);
   auto t = Make(pts);
