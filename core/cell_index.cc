@@ -5,6 +5,7 @@
 #include <tbb/parallel_reduce.h>
 
 #include <algorithm>
+#include <bit>
 #include <cmath>
 
 #include "core/parallel.h"
@@ -212,6 +213,31 @@ std::optional<CellIndex> CellIndex::Build(const TriangulationView& v,
   uint64_t sum = 0;
   for (uint64_t x : sums) sum += x;
   g.occupancy_ = static_cast<double>(sum) / ns;
+  // Rows by rank where the bitmap stays small (clustered points at 100K:
+  // all-points 8-NN spent about a third of its time in the binary
+  // searches).
+  const uint32_t words_per_row = g.nx_ / 64 + 1;
+  const double words = double(g.ny_) * words_per_row;
+  if (limits.rank_rows && words <= 4.0 * ns + 1024.0) {
+    g.words_per_row_ = words_per_row;
+    g.bits_.assign(static_cast<size_t>(words), 0);
+    g.rank_.resize(static_cast<size_t>(words));
+    ParallelFor(
+        0, g.ny_,
+        [&](size_t y) {
+          uint64_t* bits = g.bits_.data() + y * words_per_row;
+          for (uint32_t k = g.row_[y]; k < g.row_[y + 1]; ++k) {
+            bits[g.cell_x_[k] / 64] |= uint64_t{1} << (g.cell_x_[k] % 64);
+          }
+          uint32_t* rank = g.rank_.data() + y * words_per_row;
+          uint32_t before = g.row_[y];
+          for (uint32_t w = 0; w < words_per_row; ++w) {
+            rank[w] = before;
+            before += static_cast<uint32_t>(std::popcount(bits[w]));
+          }
+        },
+        64);
+  }
   return g;
 }
 

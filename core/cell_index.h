@@ -14,6 +14,7 @@
 #define KINETRI_CORE_CELL_INDEX_H_
 
 #include <algorithm>
+#include <bit>
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
@@ -36,6 +37,11 @@ class CellIndex {
     // most max_rows rows (0: never sparse).
     size_t min_sparse_cells = 0;
     size_t max_rows = 0;
+    // The sparse form also keeps a bitmap of each row's occupied columns
+    // with counts per 64 columns (where that takes at most 4 words per site
+    // and a few more), so that a row's run is two population counts
+    // instead of two binary searches. false: binary searches only (tests).
+    bool rank_rows = true;
   };
   // The index of v's sites with cells of side `cell` (> 0), or nullopt when
   // `limits` allow neither form (decided before sorting). Sorts in
@@ -55,6 +61,8 @@ class CellIndex {
                                   uint32_t every, size_t max_cells);
   // The cell side.
   double side() const { return side_; }
+  // Whether the sparse form finds runs by rank (Limits::rank_rows).
+  bool ranked() const { return !rank_.empty(); }
 
   // Sites per occupied cell, as a site sees it (the mean over sites of the
   // count of their own cell).
@@ -84,6 +92,9 @@ class CellIndex {
       if (!sparse_) {
         b = start_[size_t{y} * nx_ + x0];
         e = start_[size_t{y} * nx_ + x1 + 1];
+      } else if (!rank_.empty()) {
+        b = start_[Rank(y, x0)];
+        e = start_[Rank(y, x1 + 1)];
       } else {
         const uint32_t* first = cell_x_.data() + row_[y];
         const uint32_t* last = cell_x_.data() + row_[y + 1];
@@ -118,6 +129,13 @@ class CellIndex {
   size_t num_cells() const { return start_.size() - 1; }
 
  private:
+  // The first occupied cell of row y at a column >= x (x <= nx_), as an
+  // index into cell_x_ and start_ (sparse form, ranked).
+  uint32_t Rank(uint32_t y, uint32_t x) const {
+    const size_t w = size_t{y} * words_per_row_ + x / 64;
+    return rank_[w] + static_cast<uint32_t>(std::popcount(
+                          bits_[w] & ((uint64_t{1} << (x % 64)) - 1)));
+  }
   uint32_t Cell(double c, double origin, uint32_t count) const {
     return CellOf(c, origin, inv_, count);
   }
@@ -139,6 +157,12 @@ class CellIndex {
   // increasing column cell_x_[c].
   std::vector<uint32_t> start_;
   std::vector<uint32_t> row_, cell_x_;
+  // Ranked sparse form: bit x % 64 of word y * words_per_row_ + x / 64 is
+  // set when cell (x, y) is occupied; rank_ of a word counts the occupied
+  // cells before it (in cell_x_ order).
+  uint32_t words_per_row_ = 0;
+  std::vector<uint64_t> bits_;
+  std::vector<uint32_t> rank_;
   std::vector<uint32_t> site_;  // site (internal id) of each slot
   std::vector<Vec2> pos_;       // its position
   std::vector<uint32_t> ext_;   // its only point's external id (or none)
