@@ -156,6 +156,34 @@ TEST(CellIndex, BothFormsFindEveryDiskFarFromTheOrigin) {
   CheckBothForms(testing::UniformPoints(2000, 8, 1e-9), {1e-11, 5e-11}, 9);
 }
 
+// Columns too many to count (more than 4 per site: each row's sites are
+// sorted instead): the box is 1000 times wider than high.
+TEST(CellIndex, SparseFormOfAWideBox) {
+  auto pts = testing::ClusteredPoints(3000, 11);
+  for (Vec2& p : pts) p.x *= 1000.0;
+  auto t = Triangulation::Create(pts);
+  ASSERT_TRUE(t.ok());
+  const TriangulationView v = t->view();
+  std::mt19937_64 rng(12);
+  std::uniform_int_distribution<size_t> pick(0, pts.size() - 1);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  for (double r : {0.002, 0.02}) {
+    const auto sparse = CellIndex::Build(v, r, Sparse());
+    ASSERT_TRUE(sparse);
+    EXPECT_TRUE(sparse->sparse());
+    size_t scanned = 0, found = 0;
+    for (int k = 0; k < 300; ++k) {
+      Vec2 q = pts[pick(rng)];
+      if (k % 3 == 1) q = {q.x + r * u(rng), q.y + r * u(rng)};
+      const auto want = Brute(v, q, r);
+      ASSERT_EQ(FromRuns(*sparse, q, r, &scanned), want)
+          << "r=" << r << " q=" << q.x << "," << q.y;
+      found += want.size();
+    }
+    EXPECT_GT(found, 0u);
+  }
+}
+
 TEST(CellIndex, LimitsDecideTheForm) {
   const auto pts = testing::ClusteredPoints(2000, 10);
   auto t = Triangulation::Create(pts);
