@@ -5,7 +5,6 @@
 #include <tbb/parallel_reduce.h>
 
 #include <algorithm>
-#include <bit>
 #include <cmath>
 
 #include "core/parallel.h"
@@ -253,7 +252,7 @@ std::optional<CellIndex> CellIndex::Build(const TriangulationView& v,
           uint32_t before = g.row_[y];
           for (uint32_t w = 0; w < words_per_row; ++w) {
             rank[w] = before;
-            before += static_cast<uint32_t>(std::popcount(bits[w]));
+            before += Popcount(bits[w]);
           }
         },
         64);

@@ -14,7 +14,6 @@
 #define KINETRI_CORE_CELL_INDEX_H_
 
 #include <algorithm>
-#include <bit>
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
@@ -133,8 +132,15 @@ class CellIndex {
   // index into cell_x_ and start_ (sparse form, ranked).
   uint32_t Rank(uint32_t y, uint32_t x) const {
     const size_t w = size_t{y} * words_per_row_ + x / 64;
-    return rank_[w] + static_cast<uint32_t>(std::popcount(
-                          bits_[w] & ((uint64_t{1} << (x % 64)) - 1)));
+    return rank_[w] + Popcount(bits_[w] & ((uint64_t{1} << (x % 64)) - 1));
+  }
+  // Set bits of x, inline (std::popcount calls a library routine where the
+  // target has no popcnt instruction, as the baseline x86-64 has not).
+  static uint32_t Popcount(uint64_t x) {
+    x = x - ((x >> 1) & 0x5555555555555555u);
+    x = (x & 0x3333333333333333u) + ((x >> 2) & 0x3333333333333333u);
+    x = (x + (x >> 4)) & 0x0f0f0f0f0f0f0f0fu;
+    return static_cast<uint32_t>((x * 0x0101010101010101u) >> 56);
   }
   uint32_t Cell(double c, double origin, uint32_t count) const {
     return CellOf(c, origin, inv_, count);
