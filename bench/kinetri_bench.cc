@@ -438,7 +438,7 @@ int main(int argc, char** argv) {
       // the step's queries are built (RowOptions::recycle), as a simulation
       // loop that queries every step would: the peers write into buffers
       // allocated before their timers too.
-      std::map<std::string, std::array<kc::NeighborLists, 6>> recycled;
+      std::map<std::string, std::array<kc::NeighborLists, 7>> recycled;
       for (int s = -1; s < steps; ++s) {  // step -1: warm-up
         if (std::chrono::duration<double>(Clock::now() - last_progress)
                 .count() > 5.0) {
@@ -473,8 +473,13 @@ int main(int argc, char** argv) {
           auto t0 = Clock::now();
           auto rep = t->ApplyDisplacements(batch);
           rec(e, "update", Ms(t0));
+          std::array<kc::NeighborLists, 7>& last = recycled[e];
+          auto in = [&last](int i, kc::RowOptions o = {}) {
+            o.recycle = &last[i];
+            return o;
+          };
           t0 = Clock::now();
-          auto nn = kc::AllNearestNeighbors(*t);
+          auto nn = kc::AllNearestNeighbors(*t, in(6));
           rec(e, "all_nn", Ms(t0));
           if (!rep.ok() || !nn.ok()) {
             std::fprintf(
@@ -489,14 +494,10 @@ int main(int argc, char** argv) {
             for (uint32_t i = 0; i < n; ++i)
               a.nn_d2.push_back(D2(pos[i], pos[nn->ids[nn->offsets[i]]]));
           }
+          last[6] = *std::move(nn);
           // The queries: on the CPU executor (all threads) and on the
           // device executor (its own query path, cross-checked too).
           if (t != tri.get() && t != tri_device.get()) continue;
-          std::array<kc::NeighborLists, 6>& last = recycled[e];
-          auto in = [&last](int i, kc::RowOptions o = {}) {
-            o.recycle = &last[i];
-            return o;
-          };
           t0 = Clock::now();
           auto knn = kc::KNearestOfPoints(*t, all, 8, true, {}, in(0));
           rec(e, "knn8", Ms(t0));
@@ -544,8 +545,12 @@ int main(int argc, char** argv) {
               a.qr8_count.push_back(pr8->row_size(i));
             }
           }
-          last = {*std::move(knn), *std::move(q8),   *std::move(q32),
-                  *std::move(pnn), *std::move(pknn), *std::move(pr8)};
+          last[0] = *std::move(knn);
+          last[1] = *std::move(q8);
+          last[2] = *std::move(q32);
+          last[3] = *std::move(pnn);
+          last[4] = *std::move(pknn);
+          last[5] = *std::move(pr8);
         }
         if (on("cgal-rebuild")) {  // spatially sorted insertion
           const auto t0 = Clock::now();

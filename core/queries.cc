@@ -1236,7 +1236,8 @@ absl::Status ResultLimitError(uint64_t max_total_results) {
       "radius, or set max_results_per_row"));
 }
 
-absl::StatusOr<NeighborLists> AllNearestNeighbors(const Triangulation& t) {
+absl::StatusOr<NeighborLists> AllNearestNeighbors(const Triangulation& t,
+                                                  RowOptions options) {
   if (t.device_executor() != nullptr) {
     device::DeviceQuery q;
     q.kind = device::DeviceQuery::Kind::kAllNearest;
@@ -1245,6 +1246,10 @@ absl::StatusOr<NeighborLists> AllNearestNeighbors(const Triangulation& t) {
   const TriangulationView v = t.view_with_cached_rows();
   const uint32_t n = v.num_points;
   NeighborLists out;
+  if (options.recycle != nullptr) {
+    out = std::move(*options.recycle);
+    *options.recycle = NeighborLists();
+  }
   out.offsets.resize(size_t{n} + 1);
   out.ids.resize(n);
   out.distances.resize(n);

@@ -56,7 +56,9 @@ namespace kinetri::core {
 
 // Nearest other point of every point (the note's all-points query). A point
 // with no other point gets an empty row. Duplicates find each other at 0.
-absl::StatusOr<NeighborLists> AllNearestNeighbors(const Triangulation& t);
+// Of `options` only recycle applies.
+absl::StatusOr<NeighborLists> AllNearestNeighbors(const Triangulation& t,
+                                                  RowOptions options = {});
 
 // k nearest points of each position, closest first, with distances. Of
 // `options` only the plan, batch_queries and recycle apply: kAuto scans a cell

@@ -571,6 +571,8 @@ TEST(Queries, RecycledAnswersAreTheSameAnswers) {
     // Each query, built fresh.
     using Ask = std::function<absl::StatusOr<NeighborLists>(RowOptions)>;
     const std::vector<std::pair<const char*, Ask>> asks = {
+        {"all nearest",
+         [&](RowOptions o) { return AllNearestNeighbors(*t, o); }},
         {"knn8 of points",
          [&](RowOptions o) {
            return KNearestOfPoints(*t, ids, 8, true, {}, o);
