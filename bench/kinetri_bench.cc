@@ -59,6 +59,10 @@ ABSL_FLAG(double, engine_budget_s, 0,
           "passes this many seconds (0: 3 quick, 90 full); its record then "
           "says how many steps it ran");
 ABSL_FLAG(int, query_points, 100000, "arbitrary query points per step");
+ABSL_FLAG(bool, recycle_answers, true,
+          "Kinetri builds each step's query answers in the memory of the "
+          "last step's (core::RowOptions::recycle), as the peers write into "
+          "buffers allocated before their timers");
 ABSL_FLAG(std::string, radius_plan, "auto",
           "how Kinetri's radius queries find the sites of a disk: auto (by "
           "the expected sites per disk), graph (walk the Delaunay graph) or "
@@ -474,8 +478,9 @@ int main(int argc, char** argv) {
           auto rep = t->ApplyDisplacements(batch);
           rec(e, "update", Ms(t0));
           std::array<kc::NeighborLists, 7>& last = recycled[e];
-          auto in = [&last](int i, kc::RowOptions o = {}) {
-            o.recycle = &last[i];
+          const bool recycle = absl::GetFlag(FLAGS_recycle_answers);
+          auto in = [&last, recycle](int i, kc::RowOptions o = {}) {
+            if (recycle) o.recycle = &last[i];
             return o;
           };
           t0 = Clock::now();
