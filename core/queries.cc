@@ -156,16 +156,24 @@ absl::Status CheckRadius(double r) {
   return absl::OkStatus();
 }
 
-// A batch of queries in request order or, when `order` is set, already
-// in processing order: queries[j] is the request order[j] and has its
-// start site.
+// A batch of queries in request order or, when `every` is set, every
+// point of the triangulation `points` views, made on the fly in internal
+// order (the processing order: At(j) is the request ext_of_int[j], starting
+// at its site; `queries` stays empty). Not materialized, the all-points
+// batch costs no 28 bytes per point to write and read back.
 struct QueryBatch {
   std::vector<Query> queries;
-  std::vector<uint32_t> order;
-  size_t size() const { return queries.size(); }
+  bool every = false;
+  bool exclude_self = false;
+  TriangulationView points;
+  size_t size() const { return every ? points.num_points : queries.size(); }
+  Query At(size_t j) const {
+    return {points.pos[j], exclude_self ? points.ext_of_int[j] : kNoVertex,
+            points.rep[j]};
+  }
   // Queries of points (each starts at its site), not of positions.
   bool of_points() const {
-    return !queries.empty() && queries[0].start_site != kNoVertex;
+    return every || (!queries.empty() && queries[0].start_site != kNoVertex);
   }
 };
 
@@ -182,7 +190,6 @@ QueryBatch PointQueries(const Triangulation& t, absl::Span<const uint32_t> ids,
                         bool exclude_self) {
   const TriangulationView v = t.view();
   QueryBatch out;
-  out.queries.resize(ids.size());
   // Every point, by id (the all-points query): the queries are made in
   // internal order, which is the processing order (internal ids follow a
   // Hilbert curve), reading the points' arrays in sequence; the request
@@ -198,19 +205,12 @@ QueryBatch PointQueries(const Triangulation& t, absl::Span<const uint32_t> ids,
     every_point = identity.load();
   }
   if (every_point) {
-    out.order.resize(ids.size());
-    t.Run([&] {
-      ParallelFor(0, ids.size(), [&](size_t j) {
-        const uint32_t ext = v.ext_of_int[j];
-        Query& q = out.queries[j];
-        q.q = v.pos[j];
-        q.self_ext = exclude_self ? ext : kNoVertex;
-        q.start_site = v.rep[j];
-        out.order[j] = ext;
-      });
-    });
+    out.every = true;
+    out.exclude_self = exclude_self;
+    out.points = v;
     return out;
   }
+  out.queries.resize(ids.size());
   t.Run([&] {
     ParallelFor(0, ids.size(), [&](size_t i) {
       const uint32_t in = v.int_of_ext[ids[i]];
@@ -275,7 +275,7 @@ absl::StatusOr<NeighborLists> RunRows(
     bool distances, RowFn&& row_fn, size_t width = 0, bool find_root = true,
     bool build_rows = true, NeighborLists* recycle = nullptr) {
   const std::vector<Query>& queries = batch.queries;
-  const size_t nq = queries.size();
+  const size_t nq = batch.size();
   if (t.num_sites() == 0) width = 0;
   // The answer is built in the recycled one's memory, if any (resized, not
   // cleared first: a vector that keeps its size is not written twice).
@@ -341,11 +341,9 @@ absl::StatusOr<NeighborLists> RunRows(
       // would stall the search). A batch may come in that order already.
       std::vector<uint32_t> order_made;
       std::vector<Query> sorted_made;
-      std::vector<uint32_t> sorted_start(nq);
-      if (!batch.order.empty()) {
-        ParallelFor(0, nq,
-                    [&](size_t j) { sorted_start[j] = queries[j].start_site; });
-      } else {
+      std::vector<uint32_t> sorted_start;
+      if (!batch.every) {
+        sorted_start.resize(nq);
         std::shared_ptr<const HintGrid> grid;
         bool need_hints = false;
         for (const Query& q : queries) need_hints |= q.start_site == kNoVertex;
@@ -364,10 +362,14 @@ absl::StatusOr<NeighborLists> RunRows(
           sorted_start[j] = start[order_made[j]];
         });
       }
-      const std::vector<uint32_t>& order =
-          batch.order.empty() ? order_made : batch.order;
-      const std::vector<Query>& sorted =
-          batch.order.empty() ? sorted_made : queries;
+      // Request of each processing slot, its query, and its start site.
+      const uint32_t* const order =
+          batch.every ? batch.points.ext_of_int : order_made.data();
+      auto query_at = [&](size_t j) {
+        return batch.every ? batch.At(j) : sorted_made[j];
+      };
+      const uint32_t* const starts =
+          batch.every ? batch.points.rep : sorted_start.data();
       std::vector<uint64_t> sorted_size(rows_kept, 0);
       std::vector<uint8_t> sorted_truncated(rows_kept, 0);
       ParallelFor(
@@ -396,8 +398,8 @@ absl::StatusOr<NeighborLists> RunRows(
                 stop.store(true, std::memory_order_relaxed);
                 return;
               }
-              const Query& q = sorted[j];
-              const uint32_t s = sorted_start[j];
+              const Query q = query_at(j);
+              const uint32_t s = starts[j];
               // A query at a site's own position (queries of points)
               // starts there: distance 0 comes first, no walk needed.
               // (Without find_root, row_fn gets the start site and walks
