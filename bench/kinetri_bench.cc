@@ -443,6 +443,7 @@ int main(int argc, char** argv) {
       // loop that queries every step would: the peers write into buffers
       // allocated before their timers too.
       std::map<std::string, std::array<kc::NeighborLists, 7>> recycled;
+      const bool recycle = absl::GetFlag(FLAGS_recycle_answers);
       for (int s = -1; s < steps; ++s) {  // step -1: warm-up
         if (std::chrono::duration<double>(Clock::now() - last_progress)
                 .count() > 5.0) {
@@ -478,7 +479,6 @@ int main(int argc, char** argv) {
           auto rep = t->ApplyDisplacements(batch);
           rec(e, "update", Ms(t0));
           std::array<kc::NeighborLists, 7>& last = recycled[e];
-          const bool recycle = absl::GetFlag(FLAGS_recycle_answers);
           auto in = [&last, recycle](int i, kc::RowOptions o = {}) {
             if (recycle) o.recycle = &last[i];
             return o;

@@ -256,6 +256,15 @@ inline void CopyIds(const uint32_t* from, uint64_t len, uint32_t* to) {
   }
 }
 
+// The memory of an earlier answer (RowOptions::recycle), which is left
+// empty; an empty answer when there is none.
+NeighborLists TakeRecycled(NeighborLists* recycle) {
+  if (recycle == nullptr) return NeighborLists();
+  NeighborLists taken = std::move(*recycle);
+  *recycle = NeighborLists();
+  return taken;
+}
+
 // Rows of every query by row_fn, which gets the query's nearest site as
 // `root` (find_root false: the site its walk would start from, for a row
 // that may not need it). `width` > 0 promises that every complete
@@ -279,12 +288,8 @@ absl::StatusOr<NeighborLists> RunRows(
   if (t.num_sites() == 0) width = 0;
   // The answer is built in the recycled one's memory, if any (resized, not
   // cleared first: a vector that keeps its size is not written twice).
-  NeighborLists fixed;
-  if (recycle != nullptr) {
-    fixed = std::move(*recycle);
-    *recycle = NeighborLists();
-    if (!distances) fixed.distances.clear();
-  }
+  NeighborLists fixed = TakeRecycled(recycle);
+  if (!distances) fixed.distances.clear();
   if (width > 0) {
     const uint64_t all = uint64_t{nq} * width;
     if (limits.max_total_results && all > limits.max_total_results) {
@@ -1246,11 +1251,7 @@ absl::StatusOr<NeighborLists> AllNearestNeighbors(const Triangulation& t,
   }
   const TriangulationView v = t.view_with_cached_rows();
   const uint32_t n = v.num_points;
-  NeighborLists out;
-  if (options.recycle != nullptr) {
-    out = std::move(*options.recycle);
-    *options.recycle = NeighborLists();
-  }
+  NeighborLists out = TakeRecycled(options.recycle);
   out.offsets.resize(size_t{n} + 1);
   out.ids.resize(n);
   out.distances.resize(n);
