@@ -296,14 +296,18 @@ bool Bisect(const Vec2& from, const RegionStepPolicy& policy, Vec2* goal,
 }  // namespace
 
 void RegionExecutor::Hold(uint32_t v, uint32_t edge,
-                          std::vector<std::pair<uint32_t, uint32_t>>* to) {
+                          std::vector<HeldVertex>* to) {
+  // Not held before, so its entry is still its target.
+  std::vector<Vec2>& cur = *cur_;
+  const Vec2 target = cur[v];
   held_[v] = 1;
-  cur_[v] = (*from_)[v];
+  cur[v] = (*from_)[v];
   if (to != nullptr) {
-    to->emplace_back(v, edge);
+    to->push_back({v, edge, target});
   } else {
     held_list_.push_back(v);
     held_edge_.push_back(edge);
+    held_target_.push_back(target);
   }
 }
 
@@ -316,7 +320,7 @@ void RegionExecutor::HoldMovingHullVertices(const MeshView& m) {
     const uint32_t s = rules::SpokeOf(m, g);
     if (s == kNoEdge) return;
     const uint32_t v = m.origin[s];
-    if (v < held_.size() && !held_[v] && cur_[v] != (*from_)[v]) Hold(v, s);
+    if (v < held_.size() && !held_[v] && (*cur_)[v] != (*from_)[v]) Hold(v, s);
     g = TriangleOf(m.twin[Next(s)]);
     if (g == g0) return;
   }
@@ -335,16 +339,16 @@ void RegionExecutor::HoldCulprits(const Mesh& mesh,
 // positions of vertices a region does not own are not written by anyone
 // while regions run.
 template <bool kBounded>
-void RegionExecutor::HoldCulpritsIn(
-    const MeshView& m, RegionSlots b, std::vector<uint32_t>& queue,
-    std::vector<uint32_t>* deferred,
-    std::vector<std::pair<uint32_t, uint32_t>>* holds) {
-  const Vec2* p = cur_.data();
+void RegionExecutor::HoldCulpritsIn(const MeshView& m, RegionSlots b,
+                                    std::vector<uint32_t>& queue,
+                                    std::vector<uint32_t>* deferred,
+                                    std::vector<HeldVertex>* holds) {
+  const Vec2* p = cur_->data();
   const std::vector<Vec2>& from = *from_;
   std::vector<uint32_t> around;
   std::vector<uint32_t> rings[3];
   auto moving = [&](uint32_t u) {
-    return u < held_.size() && !held_[u] && cur_[u] != from[u];
+    return u < held_.size() && !held_[u] && (*cur_)[u] != from[u];
   };
   for (size_t i = 0; i < queue.size(); ++i) {
     const uint32_t t = queue[i];
@@ -402,10 +406,10 @@ void RegionExecutor::HoldCulpritsIn(
       const uint32_t u = cand[k];
       if (!moving(u)) continue;
       any_moving = true;
-      const Vec2 saved = cur_[u];
-      cur_[u] = from[u];
+      const Vec2 saved = (*cur_)[u];
+      (*cur_)[u] = from[u];
       const bool ok = rules::TriangleOk(m, p, t);
-      cur_[u] = saved;
+      (*cur_)[u] = saved;
       const double d = Dist2(saved, from[u]);
       if (ok && d > best_d) {
         best = k;
@@ -443,7 +447,7 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
   std::vector<uint32_t> around;
   for (int attempt = 0; attempt < policy.max_passes; ++attempt) {
     ++stats->fix_attempts;
-    const Vec2* p = cur_.data();
+    const Vec2* p = cur_->data();
     // Fix every region in parallel; nothing crosses a region boundary.
     tbb::parallel_for(tbb::blocked_range<size_t>(0, regions_.size(), 1),
                       [&](const tbb::blocked_range<size_t>& range) {
@@ -491,13 +495,13 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
           for (uint32_t t : serial.waiting) {
             for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
               const uint32_t v = m.origin[e];
-              if (v < held_.size() && !held_[v] && cur_[v] != (*from_)[v]) {
+              if (v < held_.size() && !held_[v] && (*cur_)[v] != (*from_)[v]) {
                 Hold(v, e);
               }
             }
           }
         }
-      } else if (HullWindsOnceFrom(mesh, cur_, &hull_hint_)) {
+      } else if (HullWindsOnceFrom(mesh, *cur_, &hull_hint_)) {
         break;
       } else {
         HoldMovingHullVertices(m);
@@ -518,7 +522,7 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
                      tri_mark_.data(), ve);
     }
     const bool stuck = !serial.waiting.empty();
-    if (!stuck && HullWindsOnceFrom(mesh, cur_, &hull_hint_)) {
+    if (!stuck && HullWindsOnceFrom(mesh, *cur_, &hull_hint_)) {
       for (Region& g : regions_) {
         stats->flips += g.counts;
         g.fix_log.swap(g.log);
@@ -568,7 +572,8 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
         culprits = std::move(ring);
       }
       for (uint32_t v : culprits) {
-        if (v >= held_.size() || held_[v] || cur_[v] == (*from_)[v]) continue;
+        if (v >= held_.size() || held_[v] || (*cur_)[v] == (*from_)[v])
+          continue;
         Hold(v, mesh.vertex_edge()[v]);
         held_any = true;
       }
@@ -616,9 +621,9 @@ bool RegionExecutor::MoveHeldInRegion(
   Vec2 goal = target;
   int halvings = 0;
   while (true) {
-    const Vec2 old = cur_[v];
-    cur_[v] = goal;
-    const Vec2* p = cur_.data();
+    const Vec2 old = (*cur_)[v];
+    (*cur_)[v] = goal;
+    const Vec2* p = cur_->data();
     around.clear();
     AppendStarFrom(m, mesh.vertex_edge()[v], &around);
     stack.clear();
@@ -634,7 +639,7 @@ bool RegionExecutor::MoveHeldInRegion(
     if (!deferred.empty() || c.hull_absorb + c.hull_release > 0) {
       // Reaches out of the region or changes the hull: the serial pass.
       Undo(m, log, ve);
-      cur_[v] = old;
+      (*cur_)[v] = old;
       stats->flips += counts;
       return false;
     }
@@ -653,7 +658,7 @@ bool RegionExecutor::MoveHeldInRegion(
       continue;
     }
     Undo(m, log, ve);
-    cur_[v] = old;
+    (*cur_)[v] = old;
     if (!Bisect(old, policy, &goal, &halvings, stats)) {
       stats->flips += counts;
       return false;
@@ -672,9 +677,9 @@ bool RegionExecutor::MoveHeld(Mesh& mesh, uint32_t v, const Vec2& target,
   Vec2 goal = target;
   int halvings = 0;
   while (true) {
-    const Vec2 old = cur_[v];
-    cur_[v] = goal;
-    const Vec2* p = cur_.data();
+    const Vec2 old = (*cur_)[v];
+    (*cur_)[v] = goal;
+    const Vec2* p = cur_->data();
     around.clear();
     AppendStarAndHullRing(mesh, v, &around);
     bool hull_near = false;
@@ -691,7 +696,7 @@ bool RegionExecutor::MoveHeld(Mesh& mesh, uint32_t v, const Vec2& target,
     const bool hull_changed = c.hull_absorb + c.hull_release > 0;
     const bool ok =
         waiting.empty() && (!(hull_near || hull_changed) ||
-                            HullWindsOnceFrom(mesh, cur_, &hull_hint_));
+                            HullWindsOnceFrom(mesh, *cur_, &hull_hint_));
     if (ok) {
       counts += c;
       kept->insert(kept->end(), log.begin(), log.end());
@@ -707,7 +712,7 @@ bool RegionExecutor::MoveHeld(Mesh& mesh, uint32_t v, const Vec2& target,
       continue;
     }
     Undo(m, log, ve);
-    cur_[v] = old;
+    (*cur_)[v] = old;
     if (!Bisect(old, policy, &goal, &halvings, stats)) {
       stats->flips += counts;
       return false;
@@ -716,15 +721,43 @@ bool RegionExecutor::MoveHeld(Mesh& mesh, uint32_t v, const Vec2& target,
 }
 
 bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
-                          const std::vector<Vec2>& to,
+                          std::vector<Vec2>& to,
                           const std::vector<uint32_t>& moved,
                           const RegionStepPolicy& policy,
                           RegionStepStats* stats,
                           std::vector<uint32_t>* removed,
                           std::vector<uint32_t>* hints, std::string* reason,
                           const CancelToken* cancel) {
-  auto t0 = std::chrono::steady_clock::now();
   cancel_ = cancel;
+  from_ = &from;
+  cur_ = &to;
+  held_list_.clear();
+  held_edge_.clear();
+  held_target_.clear();
+  for (Region& g : regions_) g.holds.clear();
+  const bool ok =
+      StepInPlace(mesh, moved, policy, stats, removed, hints, reason);
+  // Every held vertex's entry back to its target, whatever the outcome (the
+  // regions' holds not yet gathered into held_list_ too).
+  for (size_t i = 0; i < held_list_.size(); ++i) {
+    to[held_list_[i]] = held_target_[i];
+  }
+  for (const Region& g : regions_) {
+    for (const HeldVertex& h : g.holds) to[h.v] = h.target;
+  }
+  cur_ = nullptr;
+  from_ = nullptr;
+  cancel_ = nullptr;
+  return ok;
+}
+
+bool RegionExecutor::StepInPlace(Mesh& mesh, const std::vector<uint32_t>& moved,
+                                 const RegionStepPolicy& policy,
+                                 RegionStepStats* stats,
+                                 std::vector<uint32_t>* removed,
+                                 std::vector<uint32_t>* hints,
+                                 std::string* reason) {
+  auto t0 = std::chrono::steady_clock::now();
   // A stop once fixing began undoes every flip (and vertex_edge change) of
   // the step; before it, nothing changed.
   auto stop = [&](bool changed) {
@@ -733,9 +766,7 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
     *reason = "cancelled";
     return false;
   };
-  from_ = &from;
-  to_ = &to;
-  const uint32_t n = static_cast<uint32_t>(to.size());
+  const uint32_t n = static_cast<uint32_t>(cur_->size());
   const uint32_t nt = mesh.num_triangles();
   const uint32_t rt = std::max<uint32_t>(policy.region_triangles, 1);
   const size_t num_regions = (size_t{nt} + rt - 1) / rt;
@@ -753,18 +784,7 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
   held_log_.clear();
   removals_.clear();
   saved_.clear();
-  // cur_ = to, by all threads (16 bytes per point).
-  cur_.resize(n);
-  ParallelFor(
-      0, (size_t{n} + 65535) / 65536,
-      [&](size_t c) {
-        const size_t lo = c * 65536, hi = std::min<size_t>(n, lo + 65536);
-        std::copy(to.begin() + lo, to.begin() + hi, cur_.begin() + lo);
-      },
-      1);
   held_.assign(n, 0);
-  held_list_.clear();
-  held_edge_.clear();
   tri_mark_.assign(nt, 0);
   RegionStepPolicy pol = policy;
   pol.region_triangles = rt;
@@ -789,7 +809,7 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
     // Large motion: a sample of the triangles (evenly spaced slots, the
     // same for any thread count) that clearly predicts a rebuild saves the
     // scan the rebuild would follow.
-    const Vec2* p = cur_.data();
+    const Vec2* p = cur_->data();
     uint32_t hopeless = 0;
     for (uint32_t i = 0; i < kRebuildSamples; ++i) {
       const uint32_t t =
@@ -819,11 +839,31 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
   auto hold_back = [&](size_t r, uint32_t lo, uint32_t hi) {
     Region& g = regions_[r];
     const Bounds b{lo, hi};
-    const Vec2* p = cur_.data();
-    g.stack.clear();
-    g.waiting.clear();
     g.deferred.clear();
     g.holds.clear();
+    hopeless_in[r] = static_cast<uint32_t>(g.stack.size());
+    if (g.stack.empty()) return;
+    HoldCulpritsIn<true>(m, b, g.stack, &g.deferred, &g.holds);
+    // A held vertex's star lies in the region, off the hull.
+    std::vector<uint32_t> around;
+    for (const HeldVertex& h : g.holds) {
+      around.clear();
+      AppendStarFrom(m, h.edge, &around);
+      for (uint32_t t : around) {
+        tri_mark_[t] = 1;
+        g.invalid.push_back(t);
+      }
+    }
+  };
+  // Which invalid triangles of a region no flip can repair (g.stack), and
+  // which a region cannot decide by itself (g.waiting): right after the
+  // region's scan, while its triangles are in cache. Nothing is held back
+  // before every region has been classified, so every proposal reads the
+  // positions of `to`.
+  auto classify = [&](Region& g, Bounds b) {
+    const Vec2* p = cur_->data();
+    g.stack.clear();
+    g.waiting.clear();
     for (uint32_t t : g.invalid) {
       bool outside = false;
       const rules::FixProposal prop =
@@ -834,25 +874,14 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
         g.stack.push_back(t);
       }
     }
-    hopeless_in[r] = static_cast<uint32_t>(g.stack.size());
-    if (g.stack.empty()) return;
-    HoldCulpritsIn<true>(m, b, g.stack, &g.deferred, &g.holds);
-    // A held vertex's star lies in the region, off the hull.
-    std::vector<uint32_t> around;
-    for (const auto& [v, e] : g.holds) {
-      around.clear();
-      AppendStarFrom(m, e, &around);
-      for (uint32_t t : around) {
-        tri_mark_[t] = 1;
-        g.invalid.push_back(t);
-      }
-    }
   };
   if (dense) {
-    const Vec2* p = cur_.data();
+    const Vec2* p = cur_->data();
     for_each_region([&](size_t r, uint32_t lo, uint32_t hi) {
       if (Cancelled()) return;
-      ScanTriangles(m, p, lo, hi, &regions_[r].invalid, &regions_[r].illegal);
+      Region& g = regions_[r];
+      ScanTriangles(m, p, lo, hi, &g.invalid, &g.illegal);
+      classify(g, Bounds{lo, hi});
     });
   } else {
     // Mark the triangles around the moved vertices (every edge of a marked
@@ -872,13 +901,13 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
                           }
                         }
                       });
-    const Vec2* p = cur_.data();
+    const Vec2* p = cur_->data();
     for_each_region([&](size_t r, uint32_t lo, uint32_t hi) {
+      Region& g = regions_[r];
       for (uint32_t t = lo; t < hi; ++t) {
-        if (mark[t] && !rules::TriangleOk(m, p, t)) {
-          regions_[r].invalid.push_back(t);
-        }
+        if (mark[t] && !rules::TriangleOk(m, p, t)) g.invalid.push_back(t);
       }
+      classify(g, Bounds{lo, hi});
     });
   }
   if (Cancelled()) return stop(false);
@@ -888,7 +917,7 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
   {
     // What regions left: triangles whose repair reads other regions
     // (decided here), and hopeless ones a region could not hold back.
-    const Vec2* p = cur_.data();
+    const Vec2* p = cur_->data();
     uint64_t hopeless = 0;
     std::vector<uint32_t> rest;
     for (size_t r = 0; r < num_regions; ++r) {
@@ -912,9 +941,10 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
       return false;
     }
     for (const Region& g : regions_) {
-      for (const auto& [v, e] : g.holds) {
-        held_list_.push_back(v);
-        held_edge_.push_back(e);
+      for (const HeldVertex& h : g.holds) {
+        held_list_.push_back(h.v);
+        held_edge_.push_back(h.edge);
+        held_target_.push_back(h.target);
       }
     }
     const size_t serial_begin = held_list_.size();
@@ -952,18 +982,20 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
   //    rest (near the hull, across regions, stuck); the ones that cannot
   //    move are removed.
   stats->held = static_cast<uint32_t>(held_list_.size());
+  // Held vertices by their index in held_list_ (held_target_[i]: where
+  // held_list_[i] goes).
   std::vector<uint32_t> left;
   std::vector<RegionStepStats> rstats(num_regions);
   {
-    const Vec2* p = cur_.data();
+    const Vec2* p = cur_->data();
     uint32_t* ve = mesh.mutable_vertex_edge().data();
     for (Region& g : regions_) g.held.clear();
-    for (uint32_t v : held_list_) {
-      const uint32_t e = ve[v];
+    for (uint32_t i = 0; i < held_list_.size(); ++i) {
+      const uint32_t e = ve[held_list_[i]];
       if (e == kNoEdge) {
-        left.push_back(v);
+        left.push_back(i);
       } else {
-        regions_[TriangleOf(e) / rt].held.push_back(v);
+        regions_[TriangleOf(e) / rt].held.push_back(i);
       }
     }
     for_each_region([&](size_t r, uint32_t lo, uint32_t hi) {
@@ -989,11 +1021,11 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
       }
       LegalizeLoop<true>(m, p, Bounds{lo, hi}, g.stack, g.deferred, &g.counts,
                          tri_mark_.data(), ve, &g.log);
-      for (uint32_t v : g.held) {
+      for (uint32_t i : g.held) {
         if (Cancelled() ||
-            !MoveHeldInRegion(mesh, v, to[v], pol, lo, hi, &rstats[r],
-                              &g.deferred, &g.held_log)) {
-          g.waiting.push_back(v);
+            !MoveHeldInRegion(mesh, held_list_[i], held_target_[i], pol, lo, hi,
+                              &rstats[r], &g.deferred, &g.held_log)) {
+          g.waiting.push_back(i);
         }
       }
     });
@@ -1029,11 +1061,12 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
                                tri_mark_.data(), ve, &cg.log);
             // The held vertices its regions could not move.
             for (size_t r = c * kCoarse; r < last; ++r) {
-              for (uint32_t v : regions_[r].waiting) {
+              for (uint32_t i : regions_[r].waiting) {
                 if (Cancelled() ||
-                    !MoveHeldInRegion(mesh, v, to[v], pol, b.lo, b.hi,
-                                      &cstats[c], &cg.deferred, &cg.log)) {
-                  cg.waiting.push_back(v);
+                    !MoveHeldInRegion(mesh, held_list_[i], held_target_[i], pol,
+                                      b.lo, b.hi, &cstats[c], &cg.deferred,
+                                      &cg.log)) {
+                  cg.waiting.push_back(i);
                 }
               }
             }
@@ -1069,8 +1102,10 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
       stats->held_seconds += SecondsSince(t0);
       return stop(true);
     }
-    const uint32_t v = left[i];
-    if (MoveHeld(mesh, v, to[v], pol, stats, &held_log_)) continue;
+    const uint32_t v = held_list_[left[i]];
+    if (MoveHeld(mesh, v, held_target_[left[i]], pol, stats, &held_log_)) {
+      continue;
+    }
     const uint32_t e = mesh.vertex_edge()[v];
     const uint32_t hint = mesh.view().Dest(e);
     if (!RemoveHeld(mesh, v, stats)) {
@@ -1113,8 +1148,8 @@ bool RegionExecutor::RemoveHeld(Mesh& mesh, uint32_t v,
     e = m.twin[Prev(e)];
   } while (e != e0);
   std::vector<uint32_t> touched;
-  if (!VertexOps::Remove(mesh, cur_, v, &touched, nullptr)) return false;
-  LegalizeSerial(mesh, cur_, touched, &stats->flips, &held_log_);
+  if (!VertexOps::Remove(mesh, *cur_, v, &touched, nullptr)) return false;
+  LegalizeSerial(mesh, *cur_, touched, &stats->flips, &held_log_);
   return true;
 }
 

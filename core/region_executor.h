@@ -106,6 +106,14 @@ struct RegionSlots {
 
 class RegionExecutor {
  public:
+  // A vertex held back at its old position: a half-edge leaving it (for
+  // its star) and where it is to go (its entry of `to`).
+  struct HeldVertex {
+    uint32_t v;
+    uint32_t edge;
+    Vec2 target;
+  };
+
   // Moves the vertices in `moved` (finite mesh vertices, ascending) from
   // their positions in `from` to those in `to` (both indexed by vertex;
   // entries of other vertices are equal in both). The mesh must be the
@@ -118,12 +126,14 @@ class RegionExecutor {
   // serial pass); when it fires the step returns false with
   // stats->cancelled set. A step that returns false has undone all it did:
   // the mesh is again the Delaunay triangulation of `from` (vertex_edge
-  // may differ).
-  bool Step(Mesh& mesh, const std::vector<Vec2>& from,
-            const std::vector<Vec2>& to, const std::vector<uint32_t>& moved,
-            const RegionStepPolicy& policy, RegionStepStats* stats,
-            std::vector<uint32_t>* removed, std::vector<uint32_t>* hints,
-            std::string* reason, const CancelToken* cancel = nullptr);
+  // may differ). `to` is worked on in place (no copy of every position per
+  // step): while the step runs a held vertex's entry is where it stands;
+  // every entry is as given again when Step returns.
+  bool Step(Mesh& mesh, const std::vector<Vec2>& from, std::vector<Vec2>& to,
+            const std::vector<uint32_t>& moved, const RegionStepPolicy& policy,
+            RegionStepStats* stats, std::vector<uint32_t>* removed,
+            std::vector<uint32_t>* hints, std::string* reason,
+            const CancelToken* cancel = nullptr);
 
   // Serial stack versions of the fixing and legalizing loops (same contract
   // as KineticExecutor::Fix / Legalize, hull check included), for small
@@ -156,9 +166,9 @@ class RegionExecutor {
     std::vector<uint32_t> fix_log;
     // The region's flips while moving held vertices (kept: undone on stop).
     std::vector<uint32_t> held_log;
-    std::vector<uint32_t> held;  // held vertices whose vertex_edge lies here
-    // (vertex, half-edge leaving it) held back by the region.
-    std::vector<std::pair<uint32_t, uint32_t>> holds;
+    // Held vertices whose vertex_edge lies here (indices into held_list_).
+    std::vector<uint32_t> held;
+    std::vector<HeldVertex> holds;  // held back by the region
     FlipCounts counts;
     void ClearWork();
   };
@@ -172,11 +182,16 @@ class RegionExecutor {
   void HoldCulpritsIn(const MeshView& m, RegionSlots b,
                       std::vector<uint32_t>& queue,
                       std::vector<uint32_t>* deferred,
-                      std::vector<std::pair<uint32_t, uint32_t>>* holds);
-  // Holds v at its old position; `edge` leaves v (for its star). The pair
-  // goes to *to (a region's list) if given, else to the held lists.
-  void Hold(uint32_t v, uint32_t edge,
-            std::vector<std::pair<uint32_t, uint32_t>>* to = nullptr);
+                      std::vector<HeldVertex>* holds);
+  // Holds v at its old position; `edge` leaves v (for its star). It goes
+  // to *to (a region's list) if given, else to the held lists, with its
+  // target.
+  void Hold(uint32_t v, uint32_t edge, std::vector<HeldVertex>* to = nullptr);
+  // The step's body (Step puts the held vertices' targets back after it).
+  bool StepInPlace(Mesh& mesh, const std::vector<uint32_t>& moved,
+                   const RegionStepPolicy& policy, RegionStepStats* stats,
+                   std::vector<uint32_t>* removed, std::vector<uint32_t>* hints,
+                   std::string* reason);
   // Moves held vertex v (serially) towards `target`, bisecting its motion
   // when stuck; the flips it keeps are appended to *log. False: v stays at
   // its old or last bisected position.
@@ -207,11 +222,12 @@ class RegionExecutor {
 
   const CancelToken* cancel_ = nullptr;
   const std::vector<Vec2>* from_ = nullptr;
-  const std::vector<Vec2>* to_ = nullptr;
-  std::vector<Vec2> cur_;      // positions the mesh is repaired for
+  // Positions the mesh is repaired for: the caller's `to`, in place.
+  std::vector<Vec2>* cur_ = nullptr;
   std::vector<uint8_t> held_;  // per vertex
   std::vector<uint32_t> held_list_;
   std::vector<uint32_t> held_edge_;  // a half-edge leaving each, when held
+  std::vector<Vec2> held_target_;    // its position in `to`
   std::vector<uint8_t> tri_mark_;    // per triangle: changed by a region flip
   std::vector<Region> regions_;
   // Legalizing's pass over what crossed region boundaries: coarse regions

@@ -6,12 +6,15 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <numeric>
 #include <random>
+#include <string>
 #include <utility>
 #include <vector>
 
+#include "core/cancel.h"
 #include "core/cgal_builder.h"
 #include "core/flip_rules.h"
 #include "core/kinetic.h"
@@ -345,6 +348,85 @@ void ExpectScanMatchesRules(const Mesh& mesh, const std::vector<Vec2>& pos) {
     EXPECT_EQ(invalid, want_invalid) << "piece " << piece;
     EXPECT_EQ(illegal, want_illegal) << "piece " << piece;
   }
+}
+
+// Step works on `to` in place (held vertices stand at their old positions
+// while it runs): whatever way it ends, every entry is as given when it
+// returns. Ends checked: success with held vertices, the cost model's
+// rebuild after regions held vertices, and stops at every poll of the
+// step (undone: the mesh of `from` again).
+TEST(RegionExecutor, StepGivesBackEveryTarget) {
+  constexpr size_t kN = 3000;  // under 4 * 2048 triangles: no rebuild sample
+  // Vertices and triangles in spatial order, as Triangulation keeps them:
+  // regions then hold whole stars, and hold vertices back themselves.
+  const std::vector<Vec2> raw = testing::UniformPoints(kN, 11);
+  std::vector<Vec2> from;
+  for (uint32_t i : HilbertOrder(raw)) from.push_back(raw[i]);
+  auto build = [&] {
+    Mesh mesh = BuildDelaunayWithCgal(from, AllSites(kN));
+    mesh.SortTrianglesByVertex();
+    return mesh;
+  };
+  std::mt19937_64 rng(5);
+  std::normal_distribution<double> g(0.0, 0.4 / std::sqrt(double(kN)));
+  std::vector<Vec2> to = from;
+  for (Vec2& p : to) p = {p.x + g(rng), p.y + g(rng)};
+  const std::vector<uint32_t> moved = AllSites(kN);
+  const EdgeSet before = FiniteEdges(build());
+  RegionStepPolicy policy;
+  policy.region_triangles = 256;
+  struct Run {
+    bool ok;
+    RegionStepStats stats;
+    std::vector<uint32_t> removed;
+    std::string reason;
+    Mesh mesh;
+  };
+  auto run = [&](const RegionStepPolicy& pol, const CancelToken* cancel) {
+    Run r{false, {}, {}, {}, build()};
+    std::vector<Vec2> work = to;
+    std::vector<uint32_t> hints(kN, kNoVertex);
+    r.ok = RegionExecutor().Step(r.mesh, from, work, moved, pol, &r.stats,
+                                 &r.removed, &hints, &r.reason, cancel);
+    EXPECT_EQ(work, to) << r.reason;
+    return r;
+  };
+  // Success, with held vertices; the mesh is Delaunay for `to` (less what
+  // was removed for re-insertion).
+  Run done = run(policy, nullptr);
+  ASSERT_TRUE(done.ok) << done.reason;
+  EXPECT_GT(done.stats.held, 0u);
+  std::vector<Vec2> kept;
+  std::vector<uint32_t> sites;
+  std::vector<uint8_t> gone(kN, 0);
+  for (uint32_t v : done.removed) gone[v] = 1;
+  for (uint32_t v = 0; v < kN; ++v) {
+    if (!gone[v]) sites.push_back(v);
+  }
+  EXPECT_EQ(FiniteEdges(done.mesh),
+            FiniteEdges(BuildDelaunayWithCgal(to, sites)));
+  // Rebuilt by the cost model once the regions have held their culprits.
+  RegionStepPolicy costly = policy;
+  costly.held_vertex_cost = 1e12;
+  Run rebuilt = run(costly, nullptr);
+  EXPECT_FALSE(rebuilt.ok);
+  EXPECT_NE(rebuilt.reason.find("rebuilding is cheaper"), std::string::npos)
+      << rebuilt.reason;
+  EXPECT_EQ(FiniteEdges(rebuilt.mesh), before);
+  // Stopped at the k-th poll, for k from the scan to the held vertices.
+  int stops = 0;
+  for (int k : {0, 1, 3, 10, 30, 60, 100, 200, 400}) {
+    std::atomic<int> polls{0};
+    CancelToken cancel([&] { return polls.fetch_add(1) >= k; },
+                       CancelToken::Clock::time_point::max(),
+                       CancelToken::Clock::duration::zero());
+    Run stopped = run(policy, &cancel);
+    if (stopped.ok) continue;  // past the last poll
+    ++stops;
+    EXPECT_TRUE(stopped.stats.cancelled) << k << ": " << stopped.reason;
+    EXPECT_EQ(FiniteEdges(stopped.mesh), before) << k;
+  }
+  EXPECT_GE(stops, 3);
 }
 
 TEST(MeshScan, FindsWhatTheRulesFind) {
