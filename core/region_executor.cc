@@ -170,11 +170,16 @@ void FixLoop(const MeshView& m, const Vec2* p, Bounds b,
 // Delaunay flips with a LIFO stack of half-edges inside b (each half-edge's
 // own triangle lies in b); vertex_edge (ve) is kept valid
 // (RepairVertexEdges). `log` (optional): the flipped half-edges, in order.
+// The first `known_illegal` entries of the stack (its bottom) were found
+// illegal by the scan: popped while both their triangles are unmarked
+// (neither flipped nor around a held vertex since, so the same four
+// vertices at the same positions) they are flipped without testing again.
 template <bool kBounded>
 void LegalizeLoop(const MeshView& m, const Vec2* p, Bounds b,
                   std::vector<uint32_t>& stack, std::vector<uint32_t>& deferred,
                   FlipCounts* counts, uint8_t* mark, uint32_t* ve,
-                  std::vector<uint32_t>* log = nullptr) {
+                  std::vector<uint32_t>* log = nullptr,
+                  size_t known_illegal = 0) {
   while (!stack.empty()) {
     const uint32_t e = stack.back();
     stack.pop_back();
@@ -184,7 +189,9 @@ void LegalizeLoop(const MeshView& m, const Vec2* p, Bounds b,
       deferred.push_back(e);
       continue;
     }
-    if (!rules::IsIllegal(m, p, e)) continue;
+    const bool known = stack.size() < known_illegal && !mark[TriangleOf(e)] &&
+                       !mark[TriangleOf(f)];
+    if (!known && !rules::IsIllegal(m, p, e)) continue;
     if (kBounded && !(b.In(TriangleOf(m.twin[Next(e)])) &&
                       b.In(TriangleOf(m.twin[Prev(e)])) &&
                       b.In(TriangleOf(m.twin[Next(f)])) &&
@@ -1020,7 +1027,7 @@ bool RegionExecutor::StepInPlace(Mesh& mesh, const std::vector<uint32_t>& moved,
         for (uint32_t e = 3 * t + 3; e-- > 3 * t;) g.stack.push_back(e);
       }
       LegalizeLoop<true>(m, p, Bounds{lo, hi}, g.stack, g.deferred, &g.counts,
-                         tri_mark_.data(), ve, &g.log);
+                         tri_mark_.data(), ve, &g.log, g.illegal.size());
       for (uint32_t i : g.held) {
         if (Cancelled() ||
             !MoveHeldInRegion(mesh, held_list_[i], held_target_[i], pol, lo, hi,
