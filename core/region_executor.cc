@@ -180,7 +180,34 @@ void LegalizeLoop(const MeshView& m, const Vec2* p, Bounds b,
                   FlipCounts* counts, uint8_t* mark, uint32_t* ve,
                   std::vector<uint32_t>* log = nullptr,
                   size_t known_illegal = 0) {
+  // The scan's illegal edges lie scattered over the region's slots, out of
+  // cache by now (every region has been scanned since): their triangles
+  // are prefetched kFar entries ahead; the triangles across, the vertices'
+  // positions and vertex_edge entries kNear ahead.
+  constexpr size_t kFar = 8, kNear = 4;
   while (!stack.empty()) {
+    const size_t depth = stack.size();
+    if (depth <= known_illegal) {
+      if (depth > kFar) {
+        const uint32_t a = stack[depth - 1 - kFar];
+        __builtin_prefetch(&m.twin[a]);
+        __builtin_prefetch(&m.origin[a]);
+      }
+      if (depth > kNear) {
+        const uint32_t a = stack[depth - 1 - kNear];
+        const uint32_t t = 3 * TriangleOf(a);
+        const uint32_t fa = m.twin[a];
+        __builtin_prefetch(&m.origin[fa]);
+        __builtin_prefetch(&m.twin[fa]);
+        for (uint32_t k = 0; k < 3; ++k) {
+          const uint32_t v = m.origin[t + k];
+          if (v < kInfiniteVertex) {
+            __builtin_prefetch(&p[v]);
+            __builtin_prefetch(&ve[v]);
+          }
+        }
+      }
+    }
     const uint32_t e = stack.back();
     stack.pop_back();
     if (m.origin[e] == kNoVertex) continue;  // free slot
