@@ -216,8 +216,8 @@ void LegalizeLoop(const MeshView& m, const Vec2* p, Bounds b,
       deferred.push_back(e);
       continue;
     }
-    const bool known = stack.size() < known_illegal && !mark[TriangleOf(e)] &&
-                       !mark[TriangleOf(f)];
+    const bool known = stack.size() < known_illegal && mark != nullptr &&
+                       !mark[TriangleOf(e)] && !mark[TriangleOf(f)];
     if (!known && !rules::IsIllegal(m, p, e)) continue;
     if (kBounded && !(b.In(TriangleOf(m.twin[Next(e)])) &&
                       b.In(TriangleOf(m.twin[Prev(e)])) &&
@@ -769,20 +769,25 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
   held_edge_.clear();
   held_target_.clear();
   for (Region& g : regions_) g.holds.clear();
-  const bool ok =
-      StepInPlace(mesh, moved, policy, stats, removed, hints, reason);
-  // Every held vertex's entry back to its target, whatever the outcome (the
-  // regions' holds not yet gathered into held_list_ too).
-  for (size_t i = 0; i < held_list_.size(); ++i) {
-    to[held_list_[i]] = held_target_[i];
-  }
-  for (const Region& g : regions_) {
-    for (const HeldVertex& h : g.holds) to[h.v] = h.target;
-  }
-  cur_ = nullptr;
-  from_ = nullptr;
-  cancel_ = nullptr;
-  return ok;
+  // Every held vertex's entry back to its target, however the step ends
+  // (an exception included; the regions' holds not yet gathered into
+  // held_list_ too).
+  struct PutBack {
+    RegionExecutor* x;
+    std::vector<Vec2>& to;
+    ~PutBack() {
+      for (size_t i = 0; i < x->held_list_.size(); ++i) {
+        to[x->held_list_[i]] = x->held_target_[i];
+      }
+      for (const Region& g : x->regions_) {
+        for (const HeldVertex& h : g.holds) to[h.v] = h.target;
+      }
+      x->cur_ = nullptr;
+      x->from_ = nullptr;
+      x->cancel_ = nullptr;
+    }
+  } put_back{this, to};
+  return StepInPlace(mesh, moved, policy, stats, removed, hints, reason);
 }
 
 bool RegionExecutor::StepInPlace(Mesh& mesh, const std::vector<uint32_t>& moved,
