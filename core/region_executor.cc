@@ -870,10 +870,11 @@ bool RegionExecutor::StepInPlace(Mesh& mesh, const std::vector<uint32_t>& moved,
     }
   }
   // 2. (run after the scan below) Hold back the culprits of the triangles
-  //    no flip can repair: each region decides and holds what it can by
-  //    itself (core/flip_rules.h's bounded proposal; vertices whose star it
-  //    holds), the rest is done serially afterwards. The held vertices'
-  //    stars are repaired again.
+  //    no flip can repair: each region holds what it can by itself
+  //    (vertices whose star it holds) once every region has classified its
+  //    invalid triangles (`classify`, core/flip_rules.h's bounded proposal,
+  //    right after its scan); the rest is done serially afterwards. The
+  //    held vertices' stars are repaired again.
   std::vector<uint32_t> hopeless_in(num_regions, 0);
   auto hold_back = [&](size_t r, uint32_t lo, uint32_t hi) {
     Region& g = regions_[r];

@@ -1501,45 +1501,24 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
     // reported, as a sequential scan would.
     std::atomic<uint64_t> first_bad{UINT64_MAX};
     moved_flag_.resize(n);
-    // Blocks of the internal order, through raw pointers (stores to next
-    // cannot then be taken to change the vectors), the domain checks
-    // accumulated without a branch: the loop is bound by the latency of
-    // its scattered reads. A non-finite value makes a non-finite position,
-    // which the domain check rejects.
+    // A non-finite value makes a non-finite position, which the domain
+    // check rejects.
     Run([&] {
-      constexpr size_t kBlock = 4096;
-      const uint32_t* ext_of_int = ext_of_int_.data();
-      const Vec2* values = batch.values.data();
-      const Vec2* old = pos_.data();
-      Vec2* out = next.data();
-      uint8_t* flag = moved_flag_.data();
-      ParallelFor(
-          0, (size_t{n} + kBlock - 1) / kBlock,
-          [&](size_t b) {
-            const size_t lo = b * kBlock, hi = std::min<size_t>(n, lo + kBlock);
-            bool bad = false;
-            for (size_t in = lo; in < hi; ++in) {
-              // The batch is in id order, the loop in spatial order:
-              // prefetch the scattered reads well ahead.
-              if (in + 32 < n) __builtin_prefetch(&values[ext_of_int[in + 32]]);
-              const Vec2 v = values[ext_of_int[in]];
-              const Vec2 p = delta ? Vec2{old[in].x + v.x, old[in].y + v.y} : v;
-              out[in] = p;
-              flag[in] = p != old[in] ? 1 : 0;
-              bad |= !(InExactDomain(p.x) & InExactDomain(p.y));
-            }
-            if (!bad) return;
-            for (size_t in = lo; in < hi; ++in) {
-              if (InExactDomain(out[in].x) && InExactDomain(out[in].y)) {
-                continue;
-              }
-              const uint32_t ext = ext_of_int[in];
-              uint64_t cur = first_bad.load();
-              while (ext < cur && !first_bad.compare_exchange_weak(cur, ext)) {
-              }
-            }
-          },
-          1);
+      ParallelFor(0, n, [&](size_t in) {
+        // The batch is in id order, the loop in spatial order: prefetch
+        // the scattered reads well ahead (latency-bound otherwise).
+        if (in + 32 < n)
+          __builtin_prefetch(&batch.values[ext_of_int_[in + 32]]);
+        const uint32_t ext = ext_of_int_[in];
+        const Vec2 p = new_position(ext, static_cast<uint32_t>(in));
+        next[in] = p;
+        moved_flag_[in] = p != pos_[in] ? 1 : 0;
+        if (!(InExactDomain(p.x) && InExactDomain(p.y))) {
+          uint64_t cur = first_bad.load();
+          while (ext < cur && !first_bad.compare_exchange_weak(cur, ext)) {
+          }
+        }
+      });
     });
     if (first_bad.load() != UINT64_MAX) {
       const uint32_t ext = static_cast<uint32_t>(first_bad.load());
