@@ -67,6 +67,13 @@ ABSL_FLAG(std::string, radius_plan, "auto",
           "how Kinetri's radius queries find the sites of a disk: auto (by "
           "the expected sites per disk), graph (walk the Delaunay graph) or "
           "cells (a cell index of side r built per query batch)");
+ABSL_FLAG(int64_t, device_loop_capacity, -1,
+          "kinetri-device: the worklist size below which legalizing rounds "
+          "run in device loops without the host (core::device::LoopControl; "
+          "0: the host drives every round; -1: the backend's default)");
+ABSL_FLAG(int64_t, device_loop_rounds, -1,
+          "kinetri-device: rounds a device loop runs between two reads of "
+          "its state by the host (-1: the backend's default)");
 ABSL_FLAG(std::string, engines, "",
           "comma-separated engines to run (default: all of kinetri, "
           "kinetri-1t, kinetri-rounds, kinetri-device, cgal-rebuild, "
@@ -418,9 +425,21 @@ int main(int argc, char** argv) {
                          td.status().ToString().c_str());
             return 1;
           }
+          kc::device::LoopControl loop = td->device_executor()->loop_control();
+          if (absl::GetFlag(FLAGS_device_loop_capacity) >= 0) {
+            loop.capacity = static_cast<uint32_t>(
+                absl::GetFlag(FLAGS_device_loop_capacity));
+          }
+          if (absl::GetFlag(FLAGS_device_loop_rounds) >= 0) {
+            loop.rounds_per_check =
+                static_cast<uint32_t>(absl::GetFlag(FLAGS_device_loop_rounds));
+          }
+          td->device_executor()->set_loop_control(loop);
           std::fprintf(stderr,
-                       "[bench] kinetri-device runs on the %s backend\n",
-                       kc::device::DeviceBackendName(dev.device_backend));
+                       "[bench] kinetri-device runs on the %s backend (device "
+                       "loops below %u edges, %u rounds per check)\n",
+                       kc::device::DeviceBackendName(dev.device_backend),
+                       loop.capacity, loop.rounds_per_check);
           tri_device = std::make_unique<kc::Triangulation>(*std::move(td));
         }
       }

@@ -603,6 +603,8 @@ absl::Status Triangulation::AttemptOnDevice(
   report->transfer_bytes += a->bytes_uploaded + a->bytes_downloaded;
   report->device_calls += a->device_calls;
   report->device_waits += a->host_waits;
+  report->device_loop_rounds += a->loop_rounds;
+  report->device_loop_returns += a->loop_returns;
   if (a->cancelled) {
     *result = -1;
   } else if (a->tangled) {
@@ -1618,12 +1620,20 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
     return report;
   }
   // Back to the previous step after an attempt that changed the mesh was
-  // stopped: the positions (pos_) are unchanged; the mesh and the
-  // coincident-point chains are rebuilt from them (not stoppable: it is
-  // what a stop must leave). The region executor undoes its own changes
-  // (and the coincident-point chains are put back), so this happens only
-  // after the round executor's later passes.
+  // stopped: the mesh and the coincident-point chains are rebuilt from the
+  // positions before the step (not stoppable: it is what a stop must
+  // leave). The region executor undoes its own changes (and the
+  // coincident-point chains are put back), so this happens only after the
+  // round and device executors' later passes. Those move pos_ as their
+  // sub-steps pass, so their positions before the step are kept aside
+  // (regression: a device step stopped after its first sub-step used to
+  // come back CANCELLED with part of its motion applied).
+  std::vector<Vec2> pos_before;
+  if (options_.executor != Executor::kRegions && !moved.empty()) {
+    pos_before = pos_;
+  }
   auto restore_previous = [&] {
+    if (!pos_before.empty()) pos_.swap(pos_before);
     std::vector<Vec2> by_ext(n);
     for (uint32_t i = 0; i < n; ++i) by_ext[ext_of_int_[i]] = pos_[i];
     Rebuild(by_ext);

@@ -157,6 +157,11 @@ struct StepReport {
   // and how many of them the host waited for (DeviceAttempt).
   uint64_t device_calls = 0;
   uint64_t device_waits = 0;
+  // Device executor: legalizing rounds run in device loops without the
+  // host (device::LoopControl; counted in flips.legalize_rounds too).
+  uint64_t device_loop_rounds = 0;
+  // ... and how often a loop handed a worklist that outgrew it back.
+  uint64_t device_loop_returns = 0;
 };
 
 class Triangulation {

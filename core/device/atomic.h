@@ -55,6 +55,37 @@ KINETRI_HD inline void AddRelaxed(uint32_t* slot, uint32_t value) {
 #endif
 }
 
+// Returns the old *slot and adds `value`, relaxed (an append's position).
+KINETRI_HD inline uint32_t FetchAdd(uint32_t* slot, uint32_t value) {
+#ifdef KINETRI_HAS_LIBCUDACXX
+  cuda::atomic_ref<uint32_t, cuda::thread_scope_device> ref(*slot);
+  return ref.fetch_add(value, cuda::std::memory_order_relaxed);
+#else
+  return __atomic_fetch_add(slot, value, __ATOMIC_RELAXED);
+#endif
+}
+
+// Returns the old *slot and sets the bits of `bits`, relaxed (a set's
+// "first to insert" test).
+KINETRI_HD inline uint32_t FetchOr(uint32_t* slot, uint32_t bits) {
+#ifdef KINETRI_HAS_LIBCUDACXX
+  cuda::atomic_ref<uint32_t, cuda::thread_scope_device> ref(*slot);
+  return ref.fetch_or(bits, cuda::std::memory_order_relaxed);
+#else
+  return __atomic_fetch_or(slot, bits, __ATOMIC_RELAXED);
+#endif
+}
+
+// Clears the bits of `bits` in *slot, relaxed.
+KINETRI_HD inline void ClearBits(uint32_t* slot, uint32_t bits) {
+#ifdef KINETRI_HAS_LIBCUDACXX
+  cuda::atomic_ref<uint32_t, cuda::thread_scope_device> ref(*slot);
+  ref.fetch_and(~bits, cuda::std::memory_order_relaxed);
+#else
+  __atomic_fetch_and(slot, ~bits, __ATOMIC_RELAXED);
+#endif
+}
+
 template <bool kSystem = false>
 KINETRI_HD inline void StoreRelaxed(uint32_t* slot, uint32_t value) {
 #ifdef KINETRI_HAS_LIBCUDACXX

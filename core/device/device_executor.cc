@@ -46,6 +46,13 @@ const char* DeviceBackendName(DeviceBackend backend) {
   return backend == DeviceBackend::kEmulated ? "emulated" : "cuda";
 }
 
+LoopControl DefaultLoopControl(DeviceBackend backend) {
+  LoopControl c;
+  c.capacity = backend == DeviceBackend::kCuda ? 65536 : 1024;
+  c.rounds_per_check = 8;
+  return c;
+}
+
 void RegisterDeviceBackend(DeviceBackend backend, DeviceExecutorFactory make,
                            bool (*available)(), uint64_t (*free_bytes)()) {
   Entry& e = Of(backend);

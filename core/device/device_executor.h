@@ -22,6 +22,7 @@
 #define KINETRI_CORE_DEVICE_DEVICE_EXECUTOR_H_
 
 #include <cstdint>
+#include <future>
 #include <memory>
 #include <vector>
 
@@ -64,7 +65,36 @@ struct DeviceAttempt {
   // seconds above, the cost of one on the backend.
   uint64_t device_calls = 0;
   uint64_t host_waits = 0;
+  // Legalizing rounds the device ran in its own loop (LoopControl), and how
+  // often such a loop handed a worklist that outgrew its capacity back to
+  // the host.
+  uint32_t loop_rounds = 0;
+  uint32_t loop_returns = 0;
 };
+
+// How the device executor runs the tail of legalizing, where rounds are
+// many and small (the worklist shrinks from every edge to a few hundred
+// over about 170 rounds at σ 0.1). Once a worklist holds at most
+// `capacity` edges the device runs whole rounds on its own: every
+// algorithm is launched over `capacity` elements and reads the worklist's
+// size from device memory, the next worklist is appended and deduplicated
+// on the device, and a one-element step decides whether the loop goes on.
+// The host enqueues `rounds_per_check` rounds, then reads one word (done,
+// still running, or the worklist outgrew the capacity: the host takes it
+// back); rounds enqueued after the end do nothing. The rounds and their
+// results are those of the host-driven rounds (the same candidates, claims
+// and winners), so the mesh does not depend on these settings.
+// capacity 0: the host drives every round (two waits per round).
+struct LoopControl {
+  uint32_t capacity = 0;
+  uint32_t rounds_per_check = 8;
+};
+// The defaults: 65536 edges and a check every 8 rounds on a GPU (not yet
+// measured on one); 1024 and every 8 on CPU threads, where a call costs the
+// same whether the host waits or not, so the loop saves nothing there
+// (100K points: the same step time as capacity 0 within the noise; 4096
+// cost 5-10 %), but every test run goes through both paths.
+LoopControl DefaultLoopControl(DeviceBackend backend);
 
 // One batch of queries for the device executor. Its arguments are already
 // checked (core/queries.cc checks them once for every executor).
@@ -82,6 +112,13 @@ struct DeviceQuery {
   RowOptions rows;
   QueryLimits limits;
   size_t size() const { return by_ids ? ids.size() : positions.size(); }
+};
+
+// A stream of the caller's (a cudaStream_t on the CUDA backend) for the
+// _async forms below, or null. Ignored by the emulated backend, whose
+// algorithms run to their end on CPU threads.
+struct DeviceStream {
+  void* cuda_stream = nullptr;
 };
 
 class DeviceExecutor {
@@ -123,9 +160,34 @@ class DeviceExecutor {
                                               uint64_t generation,
                                               const DeviceQuery& query) = 0;
 
+  // The _async forms, as cuCollections' *_async members: they return at
+  // once, and the work runs on a host thread of its own that drives the
+  // device (rounds and query blocks are decided by the host). Its device
+  // work begins after the work the caller had queued on `stream` when it
+  // called (null: no such order). The caller keeps every argument (`mesh`,
+  // `to`, the vectors, the token, the view and the query's spans) alive and
+  // unchanged, and reads `mesh` only, once the future is ready. Destroying
+  // the future waits for the work (it is std::async's). Attempts of one
+  // executor run one at a time, in the order they got its lock (a second
+  // one waits for the first); queries as Query(). Errors come back in the
+  // future's value, never as exceptions.
+  virtual std::future<absl::StatusOr<DeviceAttempt>> AttemptAsync(
+      Mesh& mesh, absl::Span<const Vec2> to,
+      const std::vector<uint32_t>* candidates,
+      const std::vector<uint32_t>* seeds, double rebuild_fraction,
+      const CancelToken* cancel, DeviceStream stream) = 0;
+  virtual std::future<absl::StatusOr<NeighborLists>> QueryAsync(
+      const TriangulationView& host, uint64_t generation,
+      const DeviceQuery& query, DeviceStream stream) = 0;
+
   // Device memory held across steps (mesh, positions, claims, scratch, the
   // query view).
   virtual uint64_t device_bytes() const = 0;
+
+  // The device loop's settings (LoopControl); they apply from the next
+  // attempt. rounds_per_check 0 is taken as 1.
+  virtual void set_loop_control(const LoopControl& control) = 0;
+  virtual LoopControl loop_control() const = 0;
 };
 
 // Upper bound of the memory the device executor holds per point of a

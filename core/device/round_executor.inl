@@ -34,14 +34,19 @@
 #include <thrust/transform_reduce.h>
 #include <thrust/unique.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cstdint>
 #include <cstdio>
 #include <cstdlib>
+#include <future>
 #include <memory>
+#include <mutex>
+#include <new>
 #include <type_traits>
 #include <vector>
 
+#include "absl/strings/str_cat.h"
 #include "core/device/atomic.h"
 #include "core/device/device_executor.h"
 #include "core/device/device_queries.inl"
@@ -413,17 +418,17 @@ struct Corners {
 };
 
 // vertex_edge after a round's flips, exactly as the host sets it
-// (Mesh::UpdateVertexEdgesAfterFlip for each winner in ascending order): a
-// quad corner gets the half-edge of the last winner that touches it. Pass 1
-// marks that winner (atomic max of its index + 1), pass 2 writes, pass 3
-// clears the marks.
+// (Mesh::UpdateVertexEdgesAfterFlip for each winner in ascending edge
+// order): a quad corner gets the half-edge of the last winner that touches
+// it. Pass 1 marks that winner (atomic max of its edge id + 1, so the order
+// of the entries does not matter), pass 2 writes, pass 3 clears the marks.
 struct QuadCorners {
   MeshView m;
   const uint32_t* winner_edges;
   uint32_t* vertex_edge;
   uint32_t* last;
   // Entries that won (null: every entry is a winner); the others are
-  // skipped, and the winners' relative order is that of their indices.
+  // skipped.
   const uint8_t* won = nullptr;
   KINETRI_HD bool Skip(uint32_t i) const { return won != nullptr && !won[i]; }
   // The six half-edges in UpdateVertexEdgesAfterFlip's order.
@@ -445,7 +450,7 @@ struct MarkLast {
     q.Edges(i, h);
     for (uint32_t k = 0; k < 6; ++k) {
       const uint32_t v = q.m.origin[h[k]];
-      if (v != kInfiniteVertex) ClaimMax(&q.last[v], i + 1);
+      if (v != kInfiniteVertex) ClaimMax(&q.last[v], q.winner_edges[i] + 1);
     }
   }
 };
@@ -455,9 +460,10 @@ struct WriteVertexEdges {
     if (q.Skip(i)) return;
     uint32_t h[6];
     q.Edges(i, h);
+    const uint32_t mark = q.winner_edges[i] + 1;
     for (uint32_t k = 0; k < 6; ++k) {  // later entries win, as on the host
       const uint32_t v = q.m.origin[h[k]];
-      if (v != kInfiniteVertex && q.last[v] == i + 1) q.vertex_edge[v] = h[k];
+      if (v != kInfiniteVertex && q.last[v] == mark) q.vertex_edge[v] = h[k];
     }
   }
 };
@@ -474,6 +480,225 @@ struct ClearLast {
   }
 };
 
+// The device loop (LoopControl): legalizing rounds whose sizes live in
+// device memory. Two lists alternate as a round's worklist and the next;
+// state words say which is current, their sizes, whether the loop runs,
+// and what the running round found. Every algorithm of a round is launched
+// over the loop's capacity and does nothing past the current size or once
+// the loop has stopped.
+enum LoopWord : uint32_t {
+  kLoopCur,     // which list is the current worklist (0 or 1)
+  kLoopCount0,  // entries of list 0
+  kLoopCount1,  // entries of list 1
+  kLoopStatus,  // LoopStatus
+  kLoopCands,   // candidates of the running round
+  kLoopRounds,  // rounds with candidates run since the loop started
+  kLoopWords
+};
+enum LoopStatus : uint32_t {
+  kLoopRunning,
+  kLoopDone,      // a round found no candidate: the mesh is Delaunay
+  kLoopOverflow,  // the next worklist is longer than the capacity
+};
+
+struct Loop {
+  uint32_t* state;
+  uint32_t* list0;
+  uint32_t* list1;
+  uint32_t list_size;  // of each list: no worklist is longer (see NextWork)
+  KINETRI_HD uint32_t Cur() const { return state[kLoopCur]; }
+  KINETRI_HD const uint32_t* In() const { return Cur() != 0 ? list1 : list0; }
+  KINETRI_HD bool Active(uint32_t i) const {
+    return state[kLoopStatus] == kLoopRunning && i < state[kLoopCount0 + Cur()];
+  }
+  // Appends canonical edge e to the next worklist unless it is there:
+  // queued holds one bit per half-edge, set while the edge waits in a list.
+  KINETRI_HD void Push(uint32_t* queued, uint32_t e) const {
+    const uint32_t bit = 1u << (e & 31);
+    if ((FetchOr(&queued[e >> 5], bit) & bit) != 0) return;
+    const uint32_t cur = Cur();
+    const uint32_t at = FetchAdd(&state[kLoopCount0 + (cur ^ 1)], 1);
+    // A list holds every canonical edge at most once: `at` < list_size.
+    if (at < list_size) (cur != 0 ? list0 : list1)[at] = e;
+  }
+};
+
+// One phase of a device-loop round for worklist entry i; the phases are
+// those of a host-driven round (Legalize), over the entries flagged as
+// candidates instead of a compacted copy of them.
+enum LoopPhase : uint32_t {
+  kPhaseClaim,
+  kPhaseDecide,
+  kPhaseRelease,
+  kPhaseFlip,
+  kPhaseMarkLast,
+  kPhaseWriteVertexEdges,
+  kPhaseClearLast,
+  kPhaseMarkWon,
+  kPhaseNext,
+  kPhaseUnmarkWon,
+};
+// The test phase of a device-loop round (apart from the other phases, so
+// that only its kernel carries the exact in-circle's frame and registers):
+// whether entry i is a candidate, known to be illegal (the mark is used
+// once) or tested illegal now; the entry's queued bit is cleared.
+struct LoopTest {
+  Loop loop;
+  MeshView m;
+  const Vec2* pos;
+  uint8_t* known;
+  uint32_t* queued;
+  uint8_t* cand;
+  uint8_t* won;
+  KINETRI_HD void operator()(uint32_t i) const {
+    if (!loop.Active(i)) return;
+    const uint32_t e = loop.In()[i];
+    won[i] = 0;
+    if (e == kNoEdge) {
+      cand[i] = 0;
+      return;
+    }
+    ClearBits(&queued[e >> 5], 1u << (e & 31));
+    bool c;
+    if (known[e] != 0) {
+      known[e] = 0;
+      c = true;
+    } else {
+      c = rules::IsIllegal(m, pos, e);
+    }
+    cand[i] = c ? 1 : 0;
+    if (c) AddRelaxed(&loop.state[kLoopCands], 1);
+  }
+};
+
+// The other phases, for the candidates.
+struct LoopRound {
+  Loop loop;
+  MeshView m;
+  uint8_t* known;
+  uint32_t* queued;
+  uint8_t* cand;  // per entry: a candidate of this round
+  uint8_t* won;   // per entry: won its claims
+  uint32_t* tri_claim;
+  uint32_t* vertex_edge;
+  uint32_t* last;
+  uint32_t* flips;
+  uint32_t phase;
+  KINETRI_HD void operator()(uint32_t i) const {
+    if (!loop.Active(i)) return;
+    const uint32_t* in = loop.In();
+    const uint32_t e = in[i];
+    if (cand[i] == 0) return;
+    const Claims c{m, in, nullptr, tri_claim, nullptr, 0};
+    const Won w{in, won};
+    const QuadCorners q{m, in, vertex_edge, last, won};
+    switch (phase) {
+      case kPhaseClaim:
+        c.Claim(i);
+        break;
+      case kPhaseDecide: {
+        const bool x = c.Won(i);
+        won[i] = x ? 1 : 0;
+        if (x) AddRelaxed(flips, 1);
+        break;
+      }
+      case kPhaseRelease:
+        c.Release(i);
+        break;
+      case kPhaseFlip:
+        FlipWonOp{m, w}(i);
+        break;
+      case kPhaseMarkLast:
+        MarkLast{q}(i);
+        break;
+      case kPhaseWriteVertexEdges:
+        WriteVertexEdges{q}(i);
+        break;
+      case kPhaseClearLast:
+        ClearLast{q}(i);
+        break;
+      case kPhaseMarkWon:
+        MarkWonTriangles{m, w, tri_claim, 0}(i);
+        break;
+      case kPhaseNext:
+        // As NextWork: a winner's four outer edges, or a loser whose
+        // triangles did not flip (marked known).
+        if (won[i] != 0) {
+          const uint32_t f = m.twin[e];
+          loop.Push(queued, Canonical(m, Next(e)));
+          loop.Push(queued, Canonical(m, Prev(e)));
+          loop.Push(queued, Canonical(m, Next(f)));
+          loop.Push(queued, Canonical(m, Prev(f)));
+        } else if (tri_claim[TriangleOf(e)] != 0 &&
+                   tri_claim[TriangleOf(m.twin[e])] != 0) {
+          known[e] = 1;
+          loop.Push(queued, e);
+        }
+        break;
+      case kPhaseUnmarkWon:
+        MarkWonTriangles{m, w, tri_claim, kNoEdge}(i);
+        break;
+      default:
+        break;
+    }
+  }
+};
+
+static_assert(std::is_trivially_copyable_v<LoopTest>);
+static_assert(std::is_trivially_copyable_v<LoopRound>);
+
+// The end of a device-loop round (one element): stops the loop when the
+// round had no candidate, else makes the next worklist current, and stops
+// it when that is longer than `capacity` (the host goes on).
+struct LoopFinish {
+  uint32_t* state;
+  uint32_t capacity;
+  KINETRI_HD void operator()(uint32_t) const {
+    if (state[kLoopStatus] != kLoopRunning) return;
+    if (state[kLoopCands] == 0) {
+      state[kLoopStatus] = kLoopDone;
+      return;
+    }
+    const uint32_t cur = state[kLoopCur];
+    state[kLoopCands] = 0;
+    ++state[kLoopRounds];
+    state[kLoopCount0 + cur] = 0;
+    state[kLoopCur] = cur ^ 1;
+    if (state[kLoopCount0 + (cur ^ 1)] > capacity) {
+      state[kLoopStatus] = kLoopOverflow;
+    }
+  }
+};
+
+// Starts a loop on list 0 holding n entries (their queued bits set).
+struct LoopStart {
+  uint32_t* state;
+  uint32_t n;
+  KINETRI_HD void operator()(uint32_t) const {
+    state[kLoopCur] = 0;
+    state[kLoopCount0] = n;
+    state[kLoopCount1] = 0;
+    state[kLoopStatus] = kLoopRunning;
+    state[kLoopCands] = 0;
+    state[kLoopRounds] = 0;
+  }
+};
+
+// Sets (or clears) the queued bit of each edge of a worklist.
+struct SetQueued {
+  uint32_t* queued;
+  bool set;
+  KINETRI_HD void operator()(uint32_t e) const {
+    if (e == kNoEdge) return;
+    const uint32_t bit = 1u << (e & 31);
+    if (set) {
+      FetchOr(&queued[e >> 5], bit);
+    } else {
+      ClearBits(&queued[e >> 5], bit);
+    }
+  }
+};
+
 double Since(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0)
       .count();
@@ -481,7 +706,8 @@ double Since(std::chrono::steady_clock::time_point t0) {
 
 class RoundDeviceExecutor final : public DeviceExecutor {
  public:
-  explicit RoundDeviceExecutor(DeviceBackend backend) : backend_(backend) {
+  explicit RoundDeviceExecutor(DeviceBackend backend)
+      : backend_(backend), loop_control_(DefaultLoopControl(backend)) {
 #if THRUST_DEVICE_SYSTEM == THRUST_DEVICE_SYSTEM_CUDA
     // The session's own stream. Blocking (not cudaStreamNonBlocking): the
     // device vectors' own operations (resize, assign) run on the default
@@ -494,19 +720,26 @@ class RoundDeviceExecutor final : public DeviceExecutor {
 
   DeviceBackend backend() const override { return backend_; }
   void Invalidate() override { host_changed_ = true; }
+  void set_loop_control(const LoopControl& control) override {
+    loop_control_ = control;
+    if (loop_control_.rounds_per_check == 0) loop_control_.rounds_per_check = 1;
+  }
+  LoopControl loop_control() const override { return loop_control_; }
 
   uint64_t device_bytes() const override {
     uint64_t words = 0;
-    for (const U32Vector* v : {&origin_,      &twin_,      &vertex_edge_,
-                               &base_origin_, &base_twin_, &base_vertex_edge_,
-                               &last_,        &tri_claim_, &vert_claim_,
-                               &work_,        &bad_,       &edges_,
-                               &joins_,       &kinds_,     &winners_,
-                               &win_edges_,   &next_,      &touched_,
-                               &seeds_,       &counters_}) {
+    for (const U32Vector* v : {&origin_,      &twin_,       &vertex_edge_,
+                               &base_origin_, &base_twin_,  &base_vertex_edge_,
+                               &last_,        &tri_claim_,  &vert_claim_,
+                               &work_,        &bad_,        &edges_,
+                               &joins_,       &kinds_,      &winners_,
+                               &win_edges_,   &next_,       &touched_,
+                               &seeds_,       &counters_,   &loop_list0_,
+                               &loop_list1_,  &loop_state_, &queued_}) {
       words += v->capacity();
     }
     return words * sizeof(uint32_t) + known_.capacity() + flags_.capacity() +
+           loop_cand_.capacity() + loop_won_.capacity() +
            pos_.capacity() * sizeof(Vec2) +
            props_.capacity() * sizeof(rules::FixProposal) + pool_.bytes() +
            queries_.bytes();
@@ -529,7 +762,8 @@ class RoundDeviceExecutor final : public DeviceExecutor {
         stderr,
         "[device profile] %s executor: %llu attempts, %llu fixing "
         "and %llu legalizing rounds, %llu device algorithms (the host "
-        "waited for %llu); fix "
+        "waited for %llu); %llu legalizing rounds in device loops (%llu "
+        "handed back); fix "
         "%.3f s, legalize %.3f s, transfers %.3f s (%.1f MB up, %.1f MB "
         "down)\n",
         DeviceBackendName(backend_),
@@ -537,8 +771,10 @@ class RoundDeviceExecutor final : public DeviceExecutor {
         static_cast<unsigned long long>(totals_.counts.fix_rounds),
         static_cast<unsigned long long>(totals_.counts.legalize_rounds),
         static_cast<unsigned long long>(totals_.calls),
-        static_cast<unsigned long long>(totals_.waits), totals_.fix_seconds,
-        totals_.legalize_seconds, totals_.transfer_seconds,
+        static_cast<unsigned long long>(totals_.waits),
+        static_cast<unsigned long long>(totals_.loop_rounds),
+        static_cast<unsigned long long>(totals_.loop_returns),
+        totals_.fix_seconds, totals_.legalize_seconds, totals_.transfer_seconds,
         double(totals_.bytes_uploaded) * 1e-6,
         double(totals_.bytes_downloaded) * 1e-6);
     std::fprintf(stderr,
@@ -552,6 +788,84 @@ class RoundDeviceExecutor final : public DeviceExecutor {
                                         const std::vector<uint32_t>* seeds,
                                         double rebuild_fraction,
                                         const CancelToken* cancel) override {
+    return AttemptAfter(CallerMark(nullptr), mesh, to, candidates, seeds,
+                        rebuild_fraction, cancel);
+  }
+
+  std::future<absl::StatusOr<DeviceAttempt>> AttemptAsync(
+      Mesh& mesh, absl::Span<const Vec2> to,
+      const std::vector<uint32_t>* candidates,
+      const std::vector<uint32_t>* seeds, double rebuild_fraction,
+      const CancelToken* cancel, DeviceStream stream) override {
+    // Recorded now, on the caller's thread: the caller's work so far.
+    auto mark = std::make_shared<CallerMark>(stream.cuda_stream);
+    return std::async(std::launch::async, [=, this, &mesh] {
+      return AttemptAfter(*mark, mesh, to, candidates, seeds, rebuild_fraction,
+                          cancel);
+    });
+  }
+
+  std::future<absl::StatusOr<NeighborLists>> QueryAsync(
+      const TriangulationView& host, uint64_t generation,
+      const DeviceQuery& query, DeviceStream stream) override {
+    auto mark = std::make_shared<CallerMark>(stream.cuda_stream);
+    return std::async(
+        std::launch::async, [=, this]() -> absl::StatusOr<NeighborLists> {
+          try {
+            mark->Follow(Stream{});  // the queries' stream: the default one
+          } catch (const std::exception& e) {
+            return absl::InternalError(
+                absl::StrCat("device executor: ", e.what()));
+          }
+          return Query(host, generation, query);
+        });
+  }
+
+ private:
+  // An attempt whose device work follows `mark`, one at a time. A device
+  // error (an exception of the CUDA system, or memory exhausted) comes back
+  // as a status; the executor then forgets its device state (the next
+  // attempt uploads the mesh and sets every mark again) and the host mesh
+  // is as it was.
+  absl::StatusOr<DeviceAttempt> AttemptAfter(
+      const CallerMark& mark, Mesh& mesh, absl::Span<const Vec2> to,
+      const std::vector<uint32_t>* candidates,
+      const std::vector<uint32_t>* seeds, double rebuild_fraction,
+      const CancelToken* cancel) {
+    std::lock_guard<std::mutex> lock(attempt_mu_);
+    try {
+      mark.Follow(stream_);
+      return AttemptLocked(mesh, to, candidates, seeds, rebuild_fraction,
+                           cancel);
+    } catch (const std::bad_alloc&) {
+      ForgetDeviceState();
+      return absl::ResourceExhaustedError(
+          "device executor: out of device memory during the attempt");
+    } catch (const std::exception& e) {
+      ForgetDeviceState();
+      return absl::InternalError(absl::StrCat("device executor: ", e.what()));
+    }
+  }
+
+  void ForgetDeviceState() {
+    try {
+      Drain(stream_);
+    } catch (...) {  // a device already in error: nothing more to wait for
+    }
+    clock_.Stop();
+    host_changed_ = true;
+    working_is_base_ = false;
+    for (U32Vector* v : {&tri_claim_, &vert_claim_, &last_, &queued_}) {
+      v->clear();
+    }
+    known_.clear();
+  }
+
+  DeviceAttempt AttemptLocked(Mesh& mesh, absl::Span<const Vec2> to,
+                              const std::vector<uint32_t>* candidates,
+                              const std::vector<uint32_t>* seeds,
+                              double rebuild_fraction,
+                              const CancelToken* cancel) {
     const uint64_t calls = calls_, waits = waits_;
     clock_.Mark(0);  // line 0: the attempt's start up to its first algorithm
     DeviceAttempt out =
@@ -565,6 +879,8 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     ++totals_.attempts;
     totals_.calls += out.device_calls;
     totals_.waits += out.host_waits;
+    totals_.loop_rounds += out.loop_rounds;
+    totals_.loop_returns += out.loop_returns;
     totals_.counts += out.counts;
     totals_.fix_seconds += out.fix_seconds;
     totals_.legalize_seconds += out.legalize_seconds;
@@ -575,13 +891,14 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       std::fprintf(stderr,
                    "[device profile] attempt: %llu device algorithms (%llu "
                    "waited for), %u "
-                   "fixing and %u legalizing rounds, fix %.6f s, legalize "
+                   "fixing and %u legalizing rounds (%u in device loops), "
+                   "fix %.6f s, legalize "
                    "%.6f s, transfers %.6f s (%.1f MB up)%s\n",
                    static_cast<unsigned long long>(out.device_calls),
                    static_cast<unsigned long long>(out.host_waits),
                    out.counts.fix_rounds, out.counts.legalize_rounds,
-                   out.fix_seconds, out.legalize_seconds, out.transfer_seconds,
-                   double(out.bytes_uploaded) * 1e-6,
+                   out.loop_rounds, out.fix_seconds, out.legalize_seconds,
+                   out.transfer_seconds, double(out.bytes_uploaded) * 1e-6,
                    out.fixed       ? ""
                    : out.cancelled ? " (cancelled)"
                    : out.tangled   ? " (tangled)"
@@ -590,7 +907,6 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     return out;
   }
 
- private:
   DeviceAttempt AttemptOnDevice(Mesh& mesh, absl::Span<const Vec2> to,
                                 const std::vector<uint32_t>* candidates,
                                 const std::vector<uint32_t>* seeds,
@@ -684,7 +1000,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
                     TriangleEdges{m, Raw(next_), Raw(work_)});
       SortUnique(work_);
     }
-    if (!Legalize(m, p, cancel, &out.counts)) {
+    if (!Legalize(m, p, cancel, &out)) {
       out.legalize_seconds = Since(t0);
       out.cancelled = true;
       return out;
@@ -834,13 +1150,19 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   // (core/kinetic.cc). Winners are flagged, not gathered: the host waits
   // twice per round, for the candidates' count and the next worklist's
   // (kNoEdge entries in work_ are placeholders, never candidates).
+  //
+  // Once the worklist fits the device loop (LoopControl), rounds run there
+  // until legalizing ends or the worklist outgrows it again.
   bool Legalize(const MeshView& m, const Vec2* p, const CancelToken* cancel,
-                FlipCounts* counts) {
+                DeviceAttempt* out) {
+    FlipCounts* counts = &out->counts;
     if (known_.size() != m.num_half_edges) {
       known_.assign(m.num_half_edges, 0);
     }
     counters_.resize(kCounters);
     thr::fill(A(), counters_.begin(), counters_.end(), 0u);
+    const uint32_t loop_size = LoopListSize(m);
+    const uint32_t loop_launch = std::min(loop_control_.capacity, loop_size);
     while (true) {
       const uint32_t nwork = static_cast<uint32_t>(work_.size());
       if (cancel != nullptr && cancel->Cancelled()) {
@@ -848,6 +1170,12 @@ class RoundDeviceExecutor final : public DeviceExecutor {
         thr::for_each(A(), work_.begin(), work_.end(),
                       ForgetKnown{Raw(known_)});
         return false;
+      }
+      if (nwork != 0 && nwork <= loop_launch) {
+        const LoopStatus end =
+            RunLoop(m, p, loop_size, loop_launch, cancel, out);
+        if (end == kLoopDone) break;
+        continue;  // work_: the loop's worklist (cancelled or too long)
       }
       flags_.resize(nwork);
       thr::for_each(A(), Count(0), Count(nwork),
@@ -888,6 +1216,88 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     ReadCounters(flips);
     counts->delaunay += flips[kDelaunay];
     return true;
+  }
+
+  // Edges a device-loop list can hold: every canonical edge, at most four
+  // per entry the loop may run on.
+  uint32_t LoopListSize(const MeshView& m) const {
+    const uint64_t all = m.num_half_edges / 2 + 1;
+    return static_cast<uint32_t>(
+        std::min<uint64_t>(all, 4ull * loop_control_.capacity));
+  }
+
+  // Legalizing rounds in a device loop, starting from work_ (sorted,
+  // unique, at most `launch` entries). kLoopDone: no illegal edge is left.
+  // Otherwise work_ is the loop's worklist (sorted, unique, its queued bits
+  // clear) when it outgrew `launch` (kLoopOverflow) or the attempt is
+  // cancelled (kLoopRunning; polled between checks).
+  LoopStatus RunLoop(const MeshView& m, const Vec2* p, uint32_t list_size,
+                     uint32_t launch, const CancelToken* cancel,
+                     DeviceAttempt* out) {
+    if (queued_.size() != (m.num_half_edges + 31) / 32) {
+      queued_.assign((m.num_half_edges + 31) / 32, 0u);
+    }
+    if (loop_list0_.size() < list_size) {
+      loop_list0_.resize(list_size);
+      loop_list1_.resize(list_size);
+    }
+    if (loop_cand_.size() < launch) {
+      loop_cand_.resize(launch);
+      loop_won_.resize(launch);
+    }
+    loop_state_.resize(kLoopWords);
+    const uint32_t n = static_cast<uint32_t>(work_.size());
+    thr::copy(A(), work_.begin(), work_.end(), loop_list0_.begin());
+    thr::for_each(A(), work_.begin(), work_.end(),
+                  SetQueued{Raw(queued_), true});
+    thr::for_each(A(), Count(0), Count(1), LoopStart{Raw(loop_state_), n});
+    const Loop loop{Raw(loop_state_), Raw(loop_list0_), Raw(loop_list1_),
+                    list_size};
+    const LoopTest test{
+        loop, m, p, Raw(known_), Raw(queued_), Raw(loop_cand_), Raw(loop_won_)};
+    LoopRound round{loop,
+                    m,
+                    Raw(known_),
+                    Raw(queued_),
+                    Raw(loop_cand_),
+                    Raw(loop_won_),
+                    Raw(tri_claim_),
+                    Raw(vertex_edge_),
+                    Raw(last_),
+                    Raw(counters_) + kDelaunay,
+                    0};
+    uint32_t state[kLoopWords];
+    while (true) {
+      for (uint32_t r = 0; r < loop_control_.rounds_per_check; ++r) {
+        thr::for_each(A(), Count(0), Count(launch), test);
+        for (uint32_t phase = kPhaseClaim; phase <= kPhaseUnmarkWon; ++phase) {
+          round.phase = phase;
+          thr::for_each(A(), Count(0), Count(launch), round);
+        }
+        thr::for_each(A(), Count(0), Count(1),
+                      LoopFinish{Raw(loop_state_), launch});
+      }
+      (void)P();  // the state's download waits for the rounds
+      thr::copy(loop_state_.begin(), loop_state_.end(), state);
+      if (state[kLoopStatus] != kLoopRunning ||
+          (cancel != nullptr && cancel->Cancelled())) {
+        break;
+      }
+    }
+    out->counts.legalize_rounds += state[kLoopRounds];
+    out->loop_rounds += state[kLoopRounds];
+    if (state[kLoopStatus] == kLoopDone) return kLoopDone;
+    // Back to the host: the current list becomes work_.
+    const uint32_t cur = state[kLoopCur];
+    U32Vector& list = cur != 0 ? loop_list1_ : loop_list0_;
+    const uint32_t size = state[kLoopCount0 + cur];
+    work_.resize(size);
+    thr::copy(A(), list.begin(), list.begin() + size, work_.begin());
+    thr::for_each(A(), work_.begin(), work_.end(),
+                  SetQueued{Raw(queued_), false});
+    SortUnique(work_);
+    if (state[kLoopStatus] == kLoopOverflow) ++out->loop_returns;
+    return static_cast<LoopStatus>(state[kLoopStatus]);
   }
 
   // The device counters into `out` (kCounters words), waiting for them.
@@ -931,6 +1341,8 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   }
 
   const DeviceBackend backend_;
+  std::mutex attempt_mu_;  // one attempt at a time (AttemptAsync)
+  LoopControl loop_control_;
   bool host_changed_ = true;      // Invalidate(): the base is not the host's
   bool working_is_base_ = false;  // origin_, twin_, vertex_edge_ == base
   uint32_t nv_ = 0;
@@ -945,6 +1357,11 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       touched_, seeds_;
   // Per half-edge: 1 while it waits in work_ as a loser known to be illegal.
   thr::device_vector<uint8_t> known_;
+  // The device loop: its two worklists, its state (LoopWord), one bit per
+  // half-edge set while the edge waits in a list (clear between loops), and
+  // per entry whether it is a candidate and won.
+  U32Vector loop_list0_, loop_list1_, loop_state_, queued_;
+  thr::device_vector<uint8_t> loop_cand_, loop_won_;
   // Flip counts kept on the device during an attempt: per fix kind
   // (rules::FixProposal::kind) and kDelaunay.
   U32Vector counters_;
@@ -964,6 +1381,8 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     uint64_t attempts = 0;
     uint64_t calls = 0;
     uint64_t waits = 0;
+    uint64_t loop_rounds = 0;
+    uint64_t loop_returns = 0;
     FlipCounts counts;
     double fix_seconds = 0.0;
     double legalize_seconds = 0.0;

@@ -170,6 +170,58 @@ inline NoWaitPolicy PolicyNoWait(ScratchPool& pool, Stream stream) {
 inline void Drain(Stream) {}
 #endif
 
+// Orders device work after what a caller queued on its own stream (the
+// _async forms' DeviceStream): a CallerMark is recorded on the caller's
+// stream when the call is made, on the calling thread; Follow() makes
+// `stream` wait for it, when the call's work begins. Null handle: nothing
+// to wait for. On CPU threads the caller's work is done when its call
+// returns: nothing to record.
+class CallerMark {
+ public:
+  explicit CallerMark(void* caller_stream) {
+#if THRUST_DEVICE_SYSTEM == THRUST_DEVICE_SYSTEM_CUDA
+    if (caller_stream == nullptr) return;
+    pthr::cuda_cub::throw_on_error(
+        cudaEventCreateWithFlags(&event_, cudaEventDisableTiming),
+        "device executor: the caller's stream");
+    pthr::cuda_cub::throw_on_error(
+        cudaEventRecord(event_, static_cast<cudaStream_t>(caller_stream)),
+        "device executor: the caller's stream");
+#else
+    (void)caller_stream;
+#endif
+  }
+  CallerMark(CallerMark&& o) noexcept {
+#if THRUST_DEVICE_SYSTEM == THRUST_DEVICE_SYSTEM_CUDA
+    event_ = o.event_;
+    o.event_ = nullptr;
+#else
+    (void)o;
+#endif
+  }
+  CallerMark(const CallerMark&) = delete;
+  CallerMark& operator=(const CallerMark&) = delete;
+  ~CallerMark() {
+#if THRUST_DEVICE_SYSTEM == THRUST_DEVICE_SYSTEM_CUDA
+    if (event_ != nullptr) cudaEventDestroy(event_);
+#endif
+  }
+  void Follow(Stream stream) const {
+#if THRUST_DEVICE_SYSTEM == THRUST_DEVICE_SYSTEM_CUDA
+    if (event_ == nullptr) return;
+    pthr::cuda_cub::throw_on_error(cudaStreamWaitEvent(stream, event_, 0),
+                                   "device executor: the caller's stream");
+#else
+    (void)stream;
+#endif
+  }
+
+ private:
+#if THRUST_DEVICE_SYSTEM == THRUST_DEVICE_SYSTEM_CUDA
+  cudaEvent_t event_ = nullptr;
+#endif
+};
+
 }  // namespace
 }  // namespace KINETRI_DEVICE_NS
 }  // namespace kinetri::core::device

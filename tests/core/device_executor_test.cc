@@ -7,11 +7,16 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstdio>
 #include <random>
 #include <vector>
 
+#include "core/cancel.h"
+#include "core/cgal_builder.h"
+#include "core/mesh.h"
 #include "core/queries.h"
 #include "core/triangulation.h"
 #include "tests/core/test_util.h"
@@ -120,6 +125,250 @@ TEST(DeviceExecutor, HostWaitsTwicePerLegalizingRound) {
         static_cast<unsigned long long>(r->device_waits));
   }
   EXPECT_GT(checked, 0);
+}
+
+// The tail of legalizing runs in device loops (device::LoopControl): the
+// host reads one word per `rounds_per_check` rounds instead of waiting
+// twice per round, and the mesh is the same whatever the settings: the
+// host driving every round (capacity 0), the defaults, a capacity so small
+// that worklists keep outgrowing the loop and go back to the host, and a
+// loop that takes every worklist. Each is compared with the round executor
+// half-edge for half-edge, with its flip and round counts.
+TEST(DeviceExecutor, DeviceLoopsLeaveTheMeshAsTheHostRoundsDo) {
+  struct Setting {
+    const char* name;
+    device::LoopControl control;
+  };
+  const std::vector<Setting> settings = {
+      {"host rounds", {0, 8}},
+      {"defaults", device::DefaultLoopControl(DeviceBackend::kEmulated)},
+      {"capacity 7, check every 2", {7, 2}},
+      {"every worklist, check every round", {1u << 22, 1}},
+      {"every worklist, check every 16", {1u << 22, 16}},
+  };
+  const size_t n = 3000;
+  const auto pts = testing::UniformPoints(n, 61);
+  TriangulationOptions rounds_opt;
+  rounds_opt.executor = Executor::kRounds;
+  auto rounds = Triangulation::Create(pts, rounds_opt);
+  ASSERT_TRUE(rounds.ok());
+  std::vector<Triangulation> devs;
+  for (const Setting& s : settings) {
+    auto t = Triangulation::Create(pts, DeviceOptions());
+    ASSERT_TRUE(t.ok()) << t.status();
+    t->device_executor()->set_loop_control(s.control);
+    EXPECT_EQ(t->device_executor()->loop_control().capacity,
+              s.control.capacity);
+    devs.push_back(*std::move(t));
+  }
+  std::vector<uint64_t> loop_rounds(settings.size(), 0);
+  std::vector<uint64_t> returns(settings.size(), 0);
+  std::vector<uint64_t> waits(settings.size(), 0);
+  std::mt19937_64 rng(62);
+  const double spacing = 1.0 / std::sqrt(double(n));
+  int s = 0;
+  for (double sigma : {0.02, 0.1, 0.3, 0.05, 0.5, 0.2}) {
+    const DisplacementBatch b = Brownian(n, sigma * spacing, rng);
+    auto rr = rounds->ApplyDisplacements(b);
+    ASSERT_TRUE(rr.ok()) << rr.status();
+    for (size_t k = 0; k < settings.size(); ++k) {
+      const std::string where = std::string(settings[k].name) + ", step " +
+                                std::to_string(s) + ", sigma " +
+                                std::to_string(sigma);
+      auto rd = devs[k].ApplyDisplacements(b);
+      ASSERT_TRUE(rd.ok()) << rd.status();
+      EXPECT_EQ(rr->path, rd->path) << where;
+      EXPECT_EQ(rr->flips.delaunay, rd->flips.delaunay) << where;
+      EXPECT_EQ(rr->flips.legalize_rounds, rd->flips.legalize_rounds) << where;
+      EXPECT_EQ(rr->failed_attempts, rd->failed_attempts) << where;
+      ExpectSameMesh(*rounds, devs[k], where);
+      EXPECT_LE(rd->device_loop_rounds, rd->flips.legalize_rounds) << where;
+      loop_rounds[k] += rd->device_loop_rounds;
+      returns[k] += rd->device_loop_returns;
+      waits[k] += rd->device_waits;
+      if (settings[k].control.capacity >= (1u << 22) &&
+          rd->path == UpdatePath::kLocal && rd->failed_attempts == 0) {
+        // Every legalizing round ran in the loop: one wait per check (and
+        // one more for the check that found it done), besides the fixing
+        // rounds' and the attempt's own.
+        EXPECT_EQ(rd->device_loop_rounds, rd->flips.legalize_rounds) << where;
+        const uint64_t per = settings[k].control.rounds_per_check;
+        EXPECT_LE(rd->device_waits, rd->device_loop_rounds / per + 2 +
+                                        5 * rd->flips.fix_rounds + 12)
+            << where;
+      }
+    }
+    EXPECT_EQ(testing::EdgesAsPositions(*rounds),
+              testing::CgalDelaunayEdges(rounds->Positions()));
+    ++s;
+  }
+  for (size_t k = 0; k < settings.size(); ++k) {
+    std::printf(
+        "%s: %llu rounds in device loops, %llu handed back, %llu "
+        "waits\n",
+        settings[k].name, static_cast<unsigned long long>(loop_rounds[k]),
+        static_cast<unsigned long long>(returns[k]),
+        static_cast<unsigned long long>(waits[k]));
+  }
+  EXPECT_EQ(loop_rounds[0], 0u);  // capacity 0: the host drives every round
+  for (size_t k = 1; k < settings.size(); ++k) {
+    EXPECT_GT(loop_rounds[k], 0u) << settings[k].name;
+    EXPECT_LT(waits[k], waits[0]) << settings[k].name;
+  }
+  EXPECT_GT(returns[2], 0u);  // the small capacity went back to the host
+  EXPECT_EQ(returns[3], 0u);  // the large ones never did
+  EXPECT_EQ(returns[4], 0u);
+  EXPECT_LT(waits[4], waits[3]);
+}
+
+// A step stopped while a device loop runs (the token is polled between
+// checks) hands the loop's worklist back and forgets its marks: the step
+// returns CANCELLED with the triangulation as it was, and the same step
+// taken again afterwards ends at CGAL's triangulation (a mark left behind
+// would drop an edge from a later worklist or flip a legal one).
+TEST(DeviceExecutor, DeviceLoopStoppedAtAnyCheckLeavesNothingBehind) {
+  const size_t n = 3000;
+  auto t =
+      Triangulation::Create(testing::UniformPoints(n, 71), DeviceOptions());
+  ASSERT_TRUE(t.ok());
+  t->device_executor()->set_loop_control({1u << 22, 1});
+  std::mt19937_64 rng(72);
+  const double spacing = 1.0 / std::sqrt(double(n));
+  int stopped = 0, in_loop = 0;
+  for (int k = 0; k < 60; k += 3) {
+    const DisplacementBatch b = Brownian(n, 0.05 * spacing, rng);
+    const std::vector<Vec2> before = t->Positions();
+    std::atomic<int> polls{0};
+    CancelToken cancel([&] { return polls.fetch_add(1) >= k; },
+                       CancelToken::Clock::time_point::max(),
+                       CancelToken::Clock::duration::zero());
+    auto r = t->ApplyDisplacements(b, &cancel);
+    if (!r.ok()) {
+      ASSERT_EQ(r.status().code(), absl::StatusCode::kCancelled) << r.status();
+      ++stopped;
+      EXPECT_EQ(t->Positions(), before) << "poll " << k;
+      ASSERT_TRUE(t->Validate().ok()) << "poll " << k;
+      EXPECT_EQ(testing::EdgesAsPositions(*t),
+                testing::CgalDelaunayEdges(t->Positions()))
+          << "poll " << k;
+      auto again = t->ApplyDisplacements(b);
+      ASSERT_TRUE(again.ok()) << again.status();
+      in_loop += again->device_loop_rounds > 0 ? 1 : 0;
+    }
+    ASSERT_TRUE(t->Validate().ok()) << "poll " << k;
+    EXPECT_EQ(testing::EdgesAsPositions(*t),
+              testing::CgalDelaunayEdges(t->Positions()))
+        << "poll " << k;
+  }
+  EXPECT_GT(stopped, 5);
+  EXPECT_GT(in_loop, 0);
+}
+
+// The finite edges of a mesh as sorted vertex pairs.
+std::vector<std::pair<uint32_t, uint32_t>> EdgeSet(const Mesh& m) {
+  std::vector<std::pair<uint32_t, uint32_t>> out;
+  const MeshView v = m.view();
+  for (uint32_t e = 0; e < v.num_half_edges; ++e) {
+    if (v.twin[e] == kNoEdge || e > v.twin[e]) continue;
+    const uint32_t a = v.origin[e], b = v.origin[v.twin[e]];
+    if (a == kInfiniteVertex || b == kInfiniteVertex || a == kNoVertex ||
+        b == kNoVertex) {
+      continue;
+    }
+    out.emplace_back(std::min(a, b), std::max(a, b));
+  }
+  std::sort(out.begin(), out.end());
+  return out;
+}
+
+// The _async forms give what the sync forms give: attempts on two
+// executors, one called each way (and both at once), leave the same mesh,
+// flip counts and stuck corners; queries asked twice at once on one
+// executor, asynchronously, give the synchronous answer. A future dropped
+// without get() waits for its work (std::async's), so nothing outlives its
+// arguments.
+TEST(DeviceExecutor, AsyncFormsGiveWhatTheSyncFormsGive) {
+  const size_t n = 3000;
+  std::vector<Vec2> pts = testing::UniformPoints(n, 81);
+  std::vector<uint32_t> sites(n);
+  for (uint32_t i = 0; i < n; ++i) sites[i] = i;
+  auto a = device::MakeDeviceExecutor(DeviceBackend::kEmulated);
+  auto b = device::MakeDeviceExecutor(DeviceBackend::kEmulated);
+  ASSERT_TRUE(a.ok() && b.ok());
+  Mesh ma = BuildDelaunayWithCgal(pts, sites);
+  Mesh mb = ma;
+  std::mt19937_64 rng(82);
+  const double spacing = 1.0 / std::sqrt(double(n));
+  std::normal_distribution<double> g(0.0, 1.0);
+  int fixed = 0, stuck = 0;
+  for (double sigma : {0.002, 0.3, 0.005, 0.5, 0.001}) {
+    std::vector<Vec2> to = pts;
+    for (Vec2& p : to) {
+      p.x += sigma * spacing * g(rng);
+      p.y += sigma * spacing * g(rng);
+    }
+    auto fb = (*b)->AttemptAsync(mb, to, nullptr, nullptr, 0.5, nullptr,
+                                 device::DeviceStream{});
+    auto ra = (*a)->Attempt(ma, to, nullptr, nullptr, 0.5, nullptr);
+    auto rb = fb.get();
+    ASSERT_TRUE(ra.ok() && rb.ok()) << ra.status() << rb.status();
+    ASSERT_EQ(ra->fixed, rb->fixed) << "sigma " << sigma;
+    EXPECT_EQ(ra->counts.delaunay, rb->counts.delaunay);
+    EXPECT_EQ(ra->counts.legalize_rounds, rb->counts.legalize_rounds);
+    EXPECT_EQ(ra->stuck_corners, rb->stuck_corners);
+    EXPECT_EQ(ma.origin(), mb.origin()) << "sigma " << sigma;
+    EXPECT_EQ(ma.twin(), mb.twin()) << "sigma " << sigma;
+    if (ra->fixed) {
+      ++fixed;
+      EXPECT_EQ(EdgeSet(ma), EdgeSet(BuildDelaunayWithCgal(to, sites)))
+          << "sigma " << sigma;
+      pts = to;
+    } else {
+      ++stuck;  // both meshes are still those of pts
+    }
+  }
+  EXPECT_GT(fixed, 0);
+  EXPECT_GT(stuck, 0);
+  // A dropped future: its attempt still ends before the arguments go.
+  {
+    std::vector<Vec2> to = pts;
+    to[0].x += 0.01 * spacing;
+    Mesh mc = ma;
+    (void)(*a)->AttemptAsync(mc, to, nullptr, nullptr, 0.5, nullptr,
+                             device::DeviceStream{});
+  }
+
+  auto t =
+      Triangulation::Create(testing::ClusteredPoints(n, 83), DeviceOptions());
+  ASSERT_TRUE(t.ok());
+  ASSERT_TRUE(t->ApplyDisplacements(Brownian(n, 0.05 * spacing, rng)).ok());
+  std::vector<uint32_t> ids(n);
+  for (uint32_t i = 0; i < n; ++i) ids[i] = i;
+  device::DeviceQuery knn;
+  knn.kind = device::DeviceQuery::Kind::kKNearest;
+  knn.by_ids = true;
+  knn.ids = ids;
+  knn.k = 8;
+  knn.exclude_self = true;
+  device::DeviceQuery radius = knn;
+  radius.kind = device::DeviceQuery::Kind::kRadius;
+  radius.radius = 2 * spacing;
+  for (const device::DeviceQuery* q : {&knn, &radius}) {
+    device::DeviceExecutor* d = t->device_executor();
+    auto sync = d->Query(t->query_view(), t->steps(), *q);
+    ASSERT_TRUE(sync.ok()) << sync.status();
+    auto f1 =
+        d->QueryAsync(t->query_view(), t->steps(), *q, device::DeviceStream{});
+    auto f2 =
+        d->QueryAsync(t->query_view(), t->steps(), *q, device::DeviceStream{});
+    for (auto* f : {&f1, &f2}) {
+      auto r = f->get();
+      ASSERT_TRUE(r.ok()) << r.status();
+      EXPECT_EQ(r->offsets, sync->offsets);
+      EXPECT_EQ(r->ids, sync->ids);
+      EXPECT_EQ(r->distances, sync->distances);
+    }
+  }
 }
 
 // The device copy of the mesh lives across steps: the first step uploads
