@@ -19,7 +19,9 @@
 # for each benchmark size, SAN_S for each sanitizer run); STAGES picks the
 # stages (default "0 1 2 3"; 4 is Nsight Compute over the query kernels),
 # SUITES the typed suites of stage 1, BENCH_STEPS the benchmark's steps (3),
-# BENCH_ENGINES and BENCH_WORKLOADS its engines and workloads; the logs and
+# BENCH_ENGINES and BENCH_WORKLOADS its engines and workloads, BENCH_ARGS
+# more of its flags (e.g. --device_loop_capacity=0: the host drives every
+# legalizing round, to compare with the device loops); the logs and
 # gtest XML go to OUT_DIR and a short table is printed last.
 set -uo pipefail
 
@@ -140,7 +142,8 @@ for n in ${SIZES//,/ }; do
     "$B/bench/kinetri-bench" --sizes="$n" \
     --steps="${BENCH_STEPS:-3}" --workloads="${BENCH_WORKLOADS:-brownian,paper}" \
     --engines="${BENCH_ENGINES:-kinetri,kinetri-device,grid,grid-device}" \
-    --query_points=100000 --json="$O/bench-$n.json" > "$O/bench-$n.log" 2>&1
+    --query_points=100000 ${BENCH_ARGS:-} --json="$O/bench-$n.json" \
+    > "$O/bench-$n.log" 2>&1
   note "kinetri-bench n=$n rc=$?"
   grep -E 'kinetri-device|grid-device|\] ' "$O/bench-$n.log" | tail -40
 done

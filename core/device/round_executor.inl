@@ -15,7 +15,10 @@
 // it reads a result (a worklist's size): on the CUDA system every other
 // algorithm returns at once (core/device/scratch_pool.inl), so a legalizing
 // round waits twice and a fixing round five times; flip counts stay on the
-// device until the attempt ends.
+// device until the attempt ends. Once a legalizing worklist is short, its
+// rounds run in a device loop (LoopControl, "device loop" below): their
+// sizes stay in device memory and the host reads one word per
+// rounds_per_check rounds.
 #ifndef KINETRI_DEVICE_NS
 #error "define KINETRI_DEVICE_NS before including round_executor.inl"
 #endif
