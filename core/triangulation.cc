@@ -1633,7 +1633,10 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
     pos_before = pos_;
   }
   auto restore_previous = [&] {
-    if (!pos_before.empty()) pos_.swap(pos_before);
+    if (!pos_before.empty()) {
+      pos_ = std::move(pos_before);
+      pos_before.clear();
+    }
     std::vector<Vec2> by_ext(n);
     for (uint32_t i = 0; i < n; ++i) by_ext[ext_of_int_[i]] = pos_[i];
     Rebuild(by_ext);

@@ -170,7 +170,9 @@ class DeviceExecutor {
   // the future waits for the work (it is std::async's). Attempts of one
   // executor run one at a time, in the order they got its lock (a second
   // one waits for the first); queries as Query(). Errors come back in the
-  // future's value, never as exceptions.
+  // future's value, never as exceptions. The executor outlives its futures.
+  // It keeps one mesh on the device (the one its last attempt left): to
+  // step another mesh with it, call Invalidate() first.
   virtual std::future<absl::StatusOr<DeviceAttempt>> AttemptAsync(
       Mesh& mesh, absl::Span<const Vec2> to,
       const std::vector<uint32_t>* candidates,

@@ -46,7 +46,9 @@
 #include <memory>
 #include <mutex>
 #include <new>
+#include <stdexcept>
 #include <type_traits>
+#include <utility>
 #include <vector>
 
 #include "absl/strings/str_cat.h"
@@ -178,11 +180,13 @@ struct Claims {
   KINETRI_HD void Release(uint32_t i) const {
     uint32_t fp[6];
     rules::FlipFootprint(m, edges[i], fp);
-    for (uint32_t t : fp) tri_claim[t] = kNoEdge;
+    // (Several proposals may reset the same slot at once: relaxed atomic
+    // stores.)
+    for (uint32_t t : fp) StoreRelaxed(&tri_claim[t], kNoEdge);
     if (joins != nullptr) {
       for (int k = 0; k < 2; ++k) {
         const uint32_t v = joins[2 * i + k];
-        if (v < num_vertices) vert_claim[v] = kNoEdge;
+        if (v < num_vertices) StoreRelaxed(&vert_claim[v], kNoEdge);
       }
     }
   }
@@ -496,12 +500,14 @@ enum LoopWord : uint32_t {
   kLoopStatus,  // LoopStatus
   kLoopCands,   // candidates of the running round
   kLoopRounds,  // rounds with candidates run since the loop started
+  kLoopLost,    // set if an append found its list full (never expected)
   kLoopWords
 };
 enum LoopStatus : uint32_t {
   kLoopRunning,
   kLoopDone,      // a round found no candidate: the mesh is Delaunay
   kLoopOverflow,  // the next worklist is longer than the capacity
+  kLoopBroken,    // an append found its list full: the attempt fails
 };
 
 struct Loop {
@@ -522,7 +528,11 @@ struct Loop {
     const uint32_t cur = Cur();
     const uint32_t at = FetchAdd(&state[kLoopCount0 + (cur ^ 1)], 1);
     // A list holds every canonical edge at most once: `at` < list_size.
-    if (at < list_size) (cur != 0 ? list0 : list1)[at] = e;
+    if (at < list_size) {
+      (cur != 0 ? list0 : list1)[at] = e;
+    } else {
+      StoreRelaxed(&state[kLoopLost], 1);
+    }
   }
 };
 
@@ -658,6 +668,10 @@ struct LoopFinish {
   uint32_t capacity;
   KINETRI_HD void operator()(uint32_t) const {
     if (state[kLoopStatus] != kLoopRunning) return;
+    if (state[kLoopLost] != 0) {
+      state[kLoopStatus] = kLoopBroken;
+      return;
+    }
     if (state[kLoopCands] == 0) {
       state[kLoopStatus] = kLoopDone;
       return;
@@ -684,6 +698,7 @@ struct LoopStart {
     state[kLoopStatus] = kLoopRunning;
     state[kLoopCands] = 0;
     state[kLoopRounds] = 0;
+    state[kLoopLost] = 0;
   }
 };
 
@@ -710,7 +725,9 @@ double Since(std::chrono::steady_clock::time_point t0) {
 class RoundDeviceExecutor final : public DeviceExecutor {
  public:
   explicit RoundDeviceExecutor(DeviceBackend backend)
-      : backend_(backend), loop_control_(DefaultLoopControl(backend)) {
+      : backend_(backend),
+        device_(CurrentDevice()),
+        loop_control_(DefaultLoopControl(backend)) {
 #if THRUST_DEVICE_SYSTEM == THRUST_DEVICE_SYSTEM_CUDA
     // The session's own stream. Blocking (not cudaStreamNonBlocking): the
     // device vectors' own operations (resize, assign) run on the default
@@ -722,12 +739,19 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   }
 
   DeviceBackend backend() const override { return backend_; }
-  void Invalidate() override { host_changed_ = true; }
+  void Invalidate() override {
+    std::lock_guard<std::mutex> lock(attempt_mu_);
+    host_changed_ = true;
+  }
   void set_loop_control(const LoopControl& control) override {
+    std::lock_guard<std::mutex> lock(attempt_mu_);
     loop_control_ = control;
     if (loop_control_.rounds_per_check == 0) loop_control_.rounds_per_check = 1;
   }
-  LoopControl loop_control() const override { return loop_control_; }
+  LoopControl loop_control() const override {
+    std::lock_guard<std::mutex> lock(attempt_mu_);
+    return loop_control_;
+  }
 
   uint64_t device_bytes() const override {
     uint64_t words = 0;
@@ -756,6 +780,9 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   }
 
   ~RoundDeviceExecutor() override {
+    // An attempt still running (its future outlived this executor, against
+    // the contract) ends before the stream goes.
+    std::lock_guard<std::mutex> lock(attempt_mu_);
 #if THRUST_DEVICE_SYSTEM == THRUST_DEVICE_SYSTEM_CUDA
     cudaStreamSynchronize(stream_);
     cudaStreamDestroy(stream_);
@@ -800,31 +827,49 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       const std::vector<uint32_t>* candidates,
       const std::vector<uint32_t>* seeds, double rebuild_fraction,
       const CancelToken* cancel, DeviceStream stream) override {
-    // Recorded now, on the caller's thread: the caller's work so far.
-    auto mark = std::make_shared<CallerMark>(stream.cuda_stream);
-    return std::async(std::launch::async, [=, this, &mesh] {
-      return AttemptAfter(*mark, mesh, to, candidates, seeds, rebuild_fraction,
-                          cancel);
-    });
+    try {
+      // Recorded now, on the caller's thread: the caller's work so far.
+      auto mark = std::make_shared<CallerMark>(stream.cuda_stream);
+      return std::async(std::launch::async, [=, this, &mesh] {
+        return AttemptAfter(*mark, mesh, to, candidates, seeds,
+                            rebuild_fraction, cancel);
+      });
+    } catch (const std::exception& e) {  // no event, or no thread
+      return Ready<DeviceAttempt>(absl::InternalError(
+          absl::StrCat("device executor: AttemptAsync: ", e.what())));
+    }
   }
 
   std::future<absl::StatusOr<NeighborLists>> QueryAsync(
       const TriangulationView& host, uint64_t generation,
       const DeviceQuery& query, DeviceStream stream) override {
-    auto mark = std::make_shared<CallerMark>(stream.cuda_stream);
-    return std::async(
-        std::launch::async, [=, this]() -> absl::StatusOr<NeighborLists> {
-          try {
-            mark->Follow(Stream{});  // the queries' stream: the default one
-          } catch (const std::exception& e) {
-            return absl::InternalError(
-                absl::StrCat("device executor: ", e.what()));
-          }
-          return Query(host, generation, query);
-        });
+    try {
+      auto mark = std::make_shared<CallerMark>(stream.cuda_stream);
+      return std::async(
+          std::launch::async, [=, this]() -> absl::StatusOr<NeighborLists> {
+            try {
+              UseDevice(device_);
+              mark->Follow(Stream{});  // the queries' stream: the default one
+            } catch (const std::exception& e) {
+              return absl::InternalError(
+                  absl::StrCat("device executor: ", e.what()));
+            }
+            return Query(host, generation, query);
+          });
+    } catch (const std::exception& e) {
+      return Ready<NeighborLists>(absl::InternalError(
+          absl::StrCat("device executor: QueryAsync: ", e.what())));
+    }
   }
 
  private:
+  template <typename T>
+  static std::future<absl::StatusOr<T>> Ready(absl::Status status) {
+    std::promise<absl::StatusOr<T>> p;
+    p.set_value(std::move(status));
+    return p.get_future();
+  }
+
   // An attempt whose device work follows `mark`, one at a time. A device
   // error (an exception of the CUDA system, or memory exhausted) comes back
   // as a status; the executor then forgets its device state (the next
@@ -837,6 +882,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       const CancelToken* cancel) {
     std::lock_guard<std::mutex> lock(attempt_mu_);
     try {
+      UseDevice(device_);  // (an async form's thread starts on GPU 0)
       mark.Follow(stream_);
       return AttemptLocked(mesh, to, candidates, seeds, rebuild_fraction,
                            cancel);
@@ -1252,7 +1298,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     const uint32_t n = static_cast<uint32_t>(work_.size());
     thr::copy(A(), work_.begin(), work_.end(), loop_list0_.begin());
     thr::for_each(A(), work_.begin(), work_.end(),
-                  SetQueued{Raw(queued_), true});
+                  SetQueued{Raw(queued_), false});
     thr::for_each(A(), Count(0), Count(1), LoopStart{Raw(loop_state_), n});
     const Loop loop{Raw(loop_state_), Raw(loop_list0_), Raw(loop_list1_),
                     list_size};
@@ -1281,11 +1327,16 @@ class RoundDeviceExecutor final : public DeviceExecutor {
                       LoopFinish{Raw(loop_state_), launch});
       }
       (void)P();  // the state's download waits for the rounds
-      thr::copy(loop_state_.begin(), loop_state_.end(), state);
+      staging_.ToHost(Raw(loop_state_), kLoopWords, state, stream_);
       if (state[kLoopStatus] != kLoopRunning ||
           (cancel != nullptr && cancel->Cancelled())) {
         break;
       }
+    }
+    if (state[kLoopStatus] == kLoopBroken) {
+      // (AttemptAfter turns this into a status and resets the marks.)
+      throw std::runtime_error(
+          "a device loop's worklist outgrew its list (a bug)");
     }
     out->counts.legalize_rounds += state[kLoopRounds];
     out->loop_rounds += state[kLoopRounds];
@@ -1344,7 +1395,10 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   }
 
   const DeviceBackend backend_;
-  std::mutex attempt_mu_;  // one attempt at a time (AttemptAsync)
+  const int device_;  // the GPU it was made on (the async forms' threads)
+  // One attempt at a time (AttemptAsync); also guards host_changed_ and
+  // loop_control_ against calls from other threads.
+  mutable std::mutex attempt_mu_;
   LoopControl loop_control_;
   bool host_changed_ = true;      // Invalidate(): the base is not the host's
   bool working_is_base_ = false;  // origin_, twin_, vertex_edge_ == base

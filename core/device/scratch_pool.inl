@@ -170,6 +170,26 @@ inline NoWaitPolicy PolicyNoWait(ScratchPool& pool, Stream stream) {
 inline void Drain(Stream) {}
 #endif
 
+// The current GPU of this thread (0 on CPU threads), and making it current
+// on another thread (the async forms' threads start on GPU 0).
+inline int CurrentDevice() {
+#if THRUST_DEVICE_SYSTEM == THRUST_DEVICE_SYSTEM_CUDA
+  int device = 0;
+  if (cudaGetDevice(&device) != cudaSuccess) return 0;
+  return device;
+#else
+  return 0;
+#endif
+}
+inline void UseDevice(int device) {
+#if THRUST_DEVICE_SYSTEM == THRUST_DEVICE_SYSTEM_CUDA
+  pthr::cuda_cub::throw_on_error(cudaSetDevice(device),
+                                 "device executor: selecting its GPU");
+#else
+  (void)device;
+#endif
+}
+
 // Orders device work after what a caller queued on its own stream (the
 // _async forms' DeviceStream): a CallerMark is recorded on the caller's
 // stream when the call is made, on the calling thread; Follow() makes

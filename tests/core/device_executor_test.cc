@@ -281,6 +281,57 @@ std::vector<std::pair<uint32_t, uint32_t>> EdgeSet(const Mesh& m) {
   return out;
 }
 
+// An attempt stopped inside a device loop (the token is polled between
+// checks) leaves the mesh as it was and no mark behind: taken again, the
+// attempt gives the mesh a fresh executor gives, half-edge for half-edge.
+TEST(DeviceExecutor, AttemptStoppedInsideADeviceLoopLeavesNoMark) {
+  const size_t n = 3000;
+  std::vector<Vec2> pts = testing::UniformPoints(n, 91);
+  std::vector<uint32_t> sites(n);
+  for (uint32_t i = 0; i < n; ++i) sites[i] = i;
+  auto a = device::MakeDeviceExecutor(DeviceBackend::kEmulated);
+  ASSERT_TRUE(a.ok());
+  (*a)->set_loop_control({1u << 22, 1});
+  Mesh m = BuildDelaunayWithCgal(pts, sites);
+  std::mt19937_64 rng(92);
+  std::normal_distribution<double> g(0.0, 0.002 / std::sqrt(double(n)));
+  int stopped_in_loop = 0;
+  for (int k = 0; k < 40; ++k) {
+    std::vector<Vec2> to = pts;
+    for (Vec2& p : to) {
+      p.x += g(rng);
+      p.y += g(rng);
+    }
+    const auto before = EdgeSet(m);
+    std::atomic<int> polls{0};
+    CancelToken cancel([&] { return polls.fetch_add(1) >= k; },
+                       CancelToken::Clock::time_point::max(),
+                       CancelToken::Clock::duration::zero());
+    auto r = (*a)->Attempt(m, to, nullptr, nullptr, 0.5, &cancel);
+    ASSERT_TRUE(r.ok()) << r.status();
+    if (!r->cancelled) continue;  // fixed, or stuck before any poll fired
+    stopped_in_loop += r->loop_rounds > 0 ? 1 : 0;
+    EXPECT_EQ(EdgeSet(m), before) << "poll " << k;
+    // Again without a token, and on a fresh executor from the same mesh.
+    Mesh fresh_mesh = m;
+    auto fresh = device::MakeDeviceExecutor(DeviceBackend::kEmulated);
+    ASSERT_TRUE(fresh.ok());
+    auto again = (*a)->Attempt(m, to, nullptr, nullptr, 0.5, nullptr);
+    auto other =
+        (*fresh)->Attempt(fresh_mesh, to, nullptr, nullptr, 0.5, nullptr);
+    ASSERT_TRUE(again.ok() && other.ok());
+    ASSERT_EQ(again->fixed, other->fixed) << "poll " << k;
+    EXPECT_EQ(again->counts.delaunay, other->counts.delaunay);
+    EXPECT_EQ(m.origin(), fresh_mesh.origin()) << "poll " << k;
+    EXPECT_EQ(m.twin(), fresh_mesh.twin()) << "poll " << k;
+    if (again->fixed) {
+      EXPECT_EQ(EdgeSet(m), EdgeSet(BuildDelaunayWithCgal(to, sites)));
+      pts = to;
+    }
+  }
+  EXPECT_GE(stopped_in_loop, 3);
+}
+
 // The _async forms give what the sync forms give: attempts on two
 // executors, one called each way (and both at once), leave the same mesh,
 // flip counts and stuck corners; queries asked twice at once on one
@@ -329,13 +380,22 @@ TEST(DeviceExecutor, AsyncFormsGiveWhatTheSyncFormsGive) {
   }
   EXPECT_GT(fixed, 0);
   EXPECT_GT(stuck, 0);
-  // A dropped future: its attempt still ends before the arguments go.
+  // A dropped future: its attempt has ended when the statement that drops
+  // it ends (the mesh is already the new one).
   {
+    // The smallest move of point 0 (in steps of 0.02 spacings) that
+    // changes the triangulation.
     std::vector<Vec2> to = pts;
-    to[0].x += 0.01 * spacing;
+    for (double d = 0.02; d < 1.0; d += 0.02) {
+      to[0].x = pts[0].x + d * spacing;
+      if (EdgeSet(BuildDelaunayWithCgal(to, sites)) != EdgeSet(ma)) break;
+    }
+    ASSERT_NE(EdgeSet(BuildDelaunayWithCgal(to, sites)), EdgeSet(ma));
     Mesh mc = ma;
+    (*a)->Invalidate();  // another mesh for this executor
     (void)(*a)->AttemptAsync(mc, to, nullptr, nullptr, 0.5, nullptr,
                              device::DeviceStream{});
+    EXPECT_EQ(EdgeSet(mc), EdgeSet(BuildDelaunayWithCgal(to, sites)));
   }
 
   auto t =
