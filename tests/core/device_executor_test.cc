@@ -264,6 +264,13 @@ TEST(DeviceExecutor, DeviceLoopStoppedAtAnyCheckLeavesNothingBehind) {
   EXPECT_GT(in_loop, 0);
 }
 
+// Sites 0..n-1 (every point its own site), for BuildDelaunayWithCgal.
+std::vector<uint32_t> AllSites(size_t n) {
+  std::vector<uint32_t> sites(n);
+  for (uint32_t i = 0; i < n; ++i) sites[i] = i;
+  return sites;
+}
+
 // The finite edges of a mesh as sorted vertex pairs.
 std::vector<std::pair<uint32_t, uint32_t>> EdgeSet(const Mesh& m) {
   std::vector<std::pair<uint32_t, uint32_t>> out;
@@ -287,8 +294,7 @@ std::vector<std::pair<uint32_t, uint32_t>> EdgeSet(const Mesh& m) {
 TEST(DeviceExecutor, AttemptStoppedInsideADeviceLoopLeavesNoMark) {
   const size_t n = 3000;
   std::vector<Vec2> pts = testing::UniformPoints(n, 91);
-  std::vector<uint32_t> sites(n);
-  for (uint32_t i = 0; i < n; ++i) sites[i] = i;
+  const std::vector<uint32_t> sites = AllSites(n);
   auto a = device::MakeDeviceExecutor(DeviceBackend::kEmulated);
   ASSERT_TRUE(a.ok());
   (*a)->set_loop_control({1u << 22, 1});
@@ -341,8 +347,7 @@ TEST(DeviceExecutor, AttemptStoppedInsideADeviceLoopLeavesNoMark) {
 TEST(DeviceExecutor, AsyncFormsGiveWhatTheSyncFormsGive) {
   const size_t n = 3000;
   std::vector<Vec2> pts = testing::UniformPoints(n, 81);
-  std::vector<uint32_t> sites(n);
-  for (uint32_t i = 0; i < n; ++i) sites[i] = i;
+  const std::vector<uint32_t> sites = AllSites(n);
   auto a = device::MakeDeviceExecutor(DeviceBackend::kEmulated);
   auto b = device::MakeDeviceExecutor(DeviceBackend::kEmulated);
   ASSERT_TRUE(a.ok() && b.ok());
