@@ -67,11 +67,12 @@ std::vector<uint32_t> SelectIndependent(const MeshView& m,
   ParallelFor(0, n, [&](size_t i) {
     uint32_t fp[6];
     rules::FlipFootprint(m, edges[i], fp);
-    for (uint32_t t : fp) tri_claim[t] = kNoEdge;
+    // (Several claimants may reset one slot at once.)
+    for (uint32_t t : fp) AtomicStore(&tri_claim[t], kNoEdge);
     if (vertex_of) {
       for (int k = 0; k < 2; ++k) {
         const uint32_t v = (*vertex_of)[2 * i + k];
-        if (v < vert_claim.size()) vert_claim[v] = kNoEdge;
+        if (v < vert_claim.size()) AtomicStore(&vert_claim[v], kNoEdge);
       }
     }
   });

@@ -30,6 +30,12 @@ inline void AtomicMin(uint32_t* slot, uint32_t value) {
   }
 }
 
+// *slot = value, atomically (relaxed): for a slot several threads may reset
+// to the same value at once (claims released after a round).
+inline void AtomicStore(uint32_t* slot, uint32_t value) {
+  std::atomic_ref<uint32_t>(*slot).store(value, std::memory_order_relaxed);
+}
+
 // Calls fn(i) for i in [begin, end) in parallel.
 template <typename Fn>
 void ParallelFor(size_t begin, size_t end, Fn&& fn, size_t grain = 2048) {
