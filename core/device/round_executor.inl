@@ -521,7 +521,8 @@ struct Loop {
     return state[kLoopStatus] == kLoopRunning && i < state[kLoopCount0 + Cur()];
   }
   // Appends canonical edge e to the next worklist unless it is there:
-  // queued holds one bit per half-edge, set while the edge waits in a list.
+  // queued holds one bit per half-edge, set while the edge waits in the next
+  // list (a round's test clears the bits of its own list).
   KINETRI_HD void Push(uint32_t* queued, uint32_t e) const {
     const uint32_t bit = 1u << (e & 31);
     if ((FetchOr(&queued[e >> 5], bit) & bit) != 0) return;
@@ -702,18 +703,12 @@ struct LoopStart {
   }
 };
 
-// Sets (or clears) the queued bit of each edge of a worklist.
-struct SetQueued {
+// Clears the queued bit of each edge of a worklist (handed back to the
+// host).
+struct ClearQueued {
   uint32_t* queued;
-  bool set;
   KINETRI_HD void operator()(uint32_t e) const {
-    if (e == kNoEdge) return;
-    const uint32_t bit = 1u << (e & 31);
-    if (set) {
-      FetchOr(&queued[e >> 5], bit);
-    } else {
-      ClearBits(&queued[e >> 5], bit);
-    }
+    if (e != kNoEdge) ClearBits(&queued[e >> 5], 1u << (e & 31));
   }
 };
 
@@ -1296,9 +1291,9 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     }
     loop_state_.resize(kLoopWords);
     const uint32_t n = static_cast<uint32_t>(work_.size());
+    // (The first list's queued bits stay clear: a round clears its list's
+    // bits before it appends to the next.)
     thr::copy(A(), work_.begin(), work_.end(), loop_list0_.begin());
-    thr::for_each(A(), work_.begin(), work_.end(),
-                  SetQueued{Raw(queued_), false});
     thr::for_each(A(), Count(0), Count(1), LoopStart{Raw(loop_state_), n});
     const Loop loop{Raw(loop_state_), Raw(loop_list0_), Raw(loop_list1_),
                     list_size};
@@ -1347,8 +1342,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     const uint32_t size = state[kLoopCount0 + cur];
     work_.resize(size);
     thr::copy(A(), list.begin(), list.begin() + size, work_.begin());
-    thr::for_each(A(), work_.begin(), work_.end(),
-                  SetQueued{Raw(queued_), false});
+    thr::for_each(A(), work_.begin(), work_.end(), ClearQueued{Raw(queued_)});
     SortUnique(work_);
     if (state[kLoopStatus] == kLoopOverflow) ++out->loop_returns;
     return static_cast<LoopStatus>(state[kLoopStatus]);
