@@ -164,6 +164,14 @@ class Mesh {
   const std::vector<uint32_t>& vertex_edge() const { return vertex_edge_; }
   std::vector<uint32_t>& mutable_vertex_edge() { return vertex_edge_; }
 
+  // Sets one half-edge's origin and twin (the device executor applies the
+  // half-edges an attempt changed this way; with mutable_vertex_edge(), for
+  // the vertices).
+  void SetHalfEdge(uint32_t e, uint32_t origin, uint32_t twin) {
+    origin_[e] = origin;
+    twin_[e] = twin;
+  }
+
   // Swaps the arrays with a copy made elsewhere (the device executor's
   // download, which keeps the old ones for its next download): same
   // number of vertices and half-edges, no free slots added.

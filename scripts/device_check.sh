@@ -9,6 +9,7 @@
 #     -DKINETRI_CUDA=ON -DKINETRI_BUILD_SERVICE=OFF
 #   ninja -C build-cuda device_predicates_cuda_test kinetic_cuda_test \
 #     randomized_cuda_test queries_cuda_test join_leave_cuda_test \
+#     device_executor_cuda_test \
 #     kinetri-bench kinetri-device-probe
 #   scripts/device_check.sh --collect-libs build-cuda
 # --collect-libs copies the shared libraries the binaries need beyond the C
@@ -119,7 +120,7 @@ if want 1; then
 # 1. The typed suites on the CUDA backend, one after the other (processes
 #    sharing a GPU are time-sliced, which would blur the timings), each
 #    with the executor's profile at its end.
-for s in ${SUITES:-device_predicates kinetic queries join_leave randomized}; do
+for s in ${SUITES:-device_predicates device_executor kinetic queries join_leave randomized}; do
   KINETRI_DEVICE_PROFILE=2 timeout "$TEST_S" "$B/tests/${s}_cuda_test" \
     --gtest_output="xml:$O/${s}.xml" > "$O/${s}.log" 2>&1
   rc=$?

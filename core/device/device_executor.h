@@ -70,6 +70,9 @@ struct DeviceAttempt {
   // the host.
   uint32_t loop_rounds = 0;
   uint32_t loop_returns = 0;
+  // 1 when the fixed mesh came down as the half-edges and vertex_edge
+  // entries it changed, not as the whole arrays.
+  uint32_t patched_downloads = 0;
 };
 
 // How the device executor runs the tail of legalizing, where rounds are

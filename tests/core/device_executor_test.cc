@@ -1,5 +1,7 @@
 // The device executor (core/device/): its emulated backend runs the same
-// CCCL source on CPU threads. It follows the round executor's schedule, so
+// CCCL source on CPU threads (built with KINETRI_TEST_CUDA, the same tests
+// run on the CUDA backend: device_executor_cuda_test, on a machine with a
+// GPU). It follows the round executor's schedule, so
 // the two must build the same mesh down to the numbering of half-edges; it
 // keeps the mesh resident across steps (only positions go up once it is in
 // sync); and the CUDA backend is refused cleanly where there is no GPU.
@@ -14,6 +16,13 @@
 #include <random>
 #include <vector>
 
+#if defined(KINETRI_TEST_CUDA)
+#include <cuda_runtime.h>
+
+#include <chrono>
+#include <thread>
+#endif
+
 #include "core/cancel.h"
 #include "core/cgal_builder.h"
 #include "core/mesh.h"
@@ -27,10 +36,16 @@ namespace {
 using device::DeviceBackend;
 using testing::Brownian;
 
+#if defined(KINETRI_TEST_CUDA)
+constexpr DeviceBackend kBackend = DeviceBackend::kCuda;
+#else
+constexpr DeviceBackend kBackend = DeviceBackend::kEmulated;
+#endif
+
 TriangulationOptions DeviceOptions(int threads = 0) {
   TriangulationOptions o;
   o.executor = Executor::kDevice;
-  o.device_backend = DeviceBackend::kEmulated;
+  o.device_backend = kBackend;
   o.num_threads = threads;
   return o;
 }
@@ -141,7 +156,7 @@ TEST(DeviceExecutor, DeviceLoopsLeaveTheMeshAsTheHostRoundsDo) {
   };
   const std::vector<Setting> settings = {
       {"host rounds", {0, 8}},
-      {"defaults", device::DefaultLoopControl(DeviceBackend::kEmulated)},
+      {"defaults", device::DefaultLoopControl(kBackend)},
       {"capacity 7, check every 2", {7, 2}},
       {"every worklist, check every round", {1u << 22, 1}},
       {"every worklist, check every 16", {1u << 22, 16}},
@@ -295,7 +310,7 @@ TEST(DeviceExecutor, AttemptStoppedInsideADeviceLoopLeavesNoMark) {
   const size_t n = 3000;
   std::vector<Vec2> pts = testing::UniformPoints(n, 91);
   const std::vector<uint32_t> sites = AllSites(n);
-  auto a = device::MakeDeviceExecutor(DeviceBackend::kEmulated);
+  auto a = device::MakeDeviceExecutor(kBackend);
   ASSERT_TRUE(a.ok());
   (*a)->set_loop_control({1u << 22, 1});
   Mesh m = BuildDelaunayWithCgal(pts, sites);
@@ -320,7 +335,7 @@ TEST(DeviceExecutor, AttemptStoppedInsideADeviceLoopLeavesNoMark) {
     EXPECT_EQ(EdgeSet(m), before) << "poll " << k;
     // Again without a token, and on a fresh executor from the same mesh.
     Mesh fresh_mesh = m;
-    auto fresh = device::MakeDeviceExecutor(DeviceBackend::kEmulated);
+    auto fresh = device::MakeDeviceExecutor(kBackend);
     ASSERT_TRUE(fresh.ok());
     auto again = (*a)->Attempt(m, to, nullptr, nullptr, 0.5, nullptr);
     auto other =
@@ -348,8 +363,8 @@ TEST(DeviceExecutor, AsyncFormsGiveWhatTheSyncFormsGive) {
   const size_t n = 3000;
   std::vector<Vec2> pts = testing::UniformPoints(n, 81);
   const std::vector<uint32_t> sites = AllSites(n);
-  auto a = device::MakeDeviceExecutor(DeviceBackend::kEmulated);
-  auto b = device::MakeDeviceExecutor(DeviceBackend::kEmulated);
+  auto a = device::MakeDeviceExecutor(kBackend);
+  auto b = device::MakeDeviceExecutor(kBackend);
   ASSERT_TRUE(a.ok() && b.ok());
   Mesh ma = BuildDelaunayWithCgal(pts, sites);
   Mesh mb = ma;
@@ -436,9 +451,103 @@ TEST(DeviceExecutor, AsyncFormsGiveWhatTheSyncFormsGive) {
   }
 }
 
+#if defined(KINETRI_TEST_CUDA)
+// The _async forms with a real caller's stream (CUDA only): the caller
+// queues, on a non-blocking stream of its own, a host function that sleeps
+// and then sets a flag; an attempt and a query asked with that stream must
+// not end before it (their device work waits for an event recorded on the
+// stream when they were called). Without that order the attempt would end
+// within milliseconds, long before the flag.
+std::atomic<int> caller_work_done{0};
+void CUDART_CB SlowCallerWork(void*) {
+  std::this_thread::sleep_for(std::chrono::milliseconds(300));
+  caller_work_done.fetch_add(1);
+}
+
+TEST(DeviceExecutor, AsyncFormsWaitForTheCallersStream) {
+  const size_t n = 3000;
+  std::vector<Vec2> pts = testing::UniformPoints(n, 85);
+  const std::vector<uint32_t> sites = AllSites(n);
+  auto a = device::MakeDeviceExecutor(kBackend);
+  ASSERT_TRUE(a.ok());
+  Mesh m = BuildDelaunayWithCgal(pts, sites);
+  std::vector<Vec2> to = pts;
+  std::mt19937_64 rng(86);
+  std::normal_distribution<double> g(0.0, 0.01 / std::sqrt(double(n)));
+  for (Vec2& p : to) {
+    p.x += g(rng);
+    p.y += g(rng);
+  }
+  cudaStream_t caller;
+  ASSERT_EQ(cudaStreamCreateWithFlags(&caller, cudaStreamNonBlocking),
+            cudaSuccess);
+  caller_work_done = 0;
+  ASSERT_EQ(cudaLaunchHostFunc(caller, SlowCallerWork, nullptr), cudaSuccess);
+  auto f = (*a)->AttemptAsync(m, to, nullptr, nullptr, 0.5, nullptr,
+                              device::DeviceStream{caller});
+  auto r = f.get();
+  EXPECT_EQ(caller_work_done.load(), 1) << "the attempt did not wait";
+  ASSERT_TRUE(r.ok()) << r.status();
+  ASSERT_TRUE(r->fixed);
+  EXPECT_EQ(EdgeSet(m), EdgeSet(BuildDelaunayWithCgal(to, sites)));
+
+  auto t = Triangulation::Create(to, DeviceOptions());
+  ASSERT_TRUE(t.ok());
+  std::vector<uint32_t> ids(n);
+  for (uint32_t i = 0; i < n; ++i) ids[i] = i;
+  device::DeviceQuery knn;
+  knn.kind = device::DeviceQuery::Kind::kKNearest;
+  knn.by_ids = true;
+  knn.ids = ids;
+  knn.k = 8;
+  knn.exclude_self = true;
+  device::DeviceExecutor* d = t->device_executor();
+  auto sync = d->Query(t->query_view(), t->steps(), knn);
+  ASSERT_TRUE(sync.ok()) << sync.status();
+  ASSERT_EQ(cudaLaunchHostFunc(caller, SlowCallerWork, nullptr), cudaSuccess);
+  auto fq = d->QueryAsync(t->query_view(), t->steps(), knn,
+                          device::DeviceStream{caller});
+  auto q = fq.get();
+  EXPECT_EQ(caller_work_done.load(), 2) << "the query did not wait";
+  ASSERT_TRUE(q.ok()) << q.status();
+  EXPECT_EQ(q->ids, sync->ids);
+  EXPECT_EQ(q->distances, sync->distances);
+  EXPECT_EQ(cudaStreamSynchronize(caller), cudaSuccess);
+  EXPECT_EQ(cudaStreamDestroy(caller), cudaSuccess);
+}
+#endif  // KINETRI_TEST_CUDA
+
+// The host mesh's arrays, to count what a step changed.
+struct MeshArrays {
+  std::vector<uint32_t> origin, twin, vertex_edge;
+};
+MeshArrays ArraysOf(const Triangulation& t) {
+  const TriangulationView v = t.view();
+  const uint32_t ne = v.mesh.num_half_edges, nv = v.num_points;
+  return {{v.mesh.origin, v.mesh.origin + ne},
+          {v.mesh.twin, v.mesh.twin + ne},
+          {v.vertex_edge, v.vertex_edge + nv}};
+}
+// The bytes a fixed attempt downloads from `before` to `after`: the count,
+// then the changed half-edges and vertex_edge entries (12 bytes each) when
+// they are at most an eighth of all entries, the whole arrays otherwise.
+uint64_t DownloadBytes(const MeshArrays& before, const MeshArrays& after) {
+  const uint64_t ne = after.origin.size(), nv = after.vertex_edge.size();
+  uint64_t changed = 0;
+  for (size_t e = 0; e < ne; ++e) {
+    changed +=
+        before.origin[e] != after.origin[e] || before.twin[e] != after.twin[e];
+  }
+  for (size_t v = 0; v < nv; ++v) {
+    changed += before.vertex_edge[v] != after.vertex_edge[v];
+  }
+  return 4 + (changed <= (ne + nv) / 8 ? 12 * changed : 8 * ne + 4 * nv);
+}
+
 // The device copy of the mesh lives across steps: the first step uploads
-// the mesh, a later local step only the positions (and downloads the
-// result); a rebuild or re-insertion makes the next step upload it again.
+// the mesh, a later local step only the positions; a fixed attempt
+// downloads what it changed (the whole arrays when that is much); a rebuild or
+// re-insertion makes the next step upload the mesh again.
 TEST(DeviceExecutor, MeshStaysResidentAcrossSteps) {
   const size_t n = 4000;
   auto t =
@@ -447,19 +556,48 @@ TEST(DeviceExecutor, MeshStaysResidentAcrossSteps) {
   EXPECT_EQ(t->device_bytes(), 0u);  // nothing goes up before a step
   std::mt19937_64 rng(12);
   const double spacing = 1.0 / std::sqrt(double(n));
+  const MeshArrays m0 = ArraysOf(*t);
   auto first = t->ApplyDisplacements(Brownian(n, 0.01 * spacing, rng));
   ASSERT_TRUE(first.ok()) << first.status();
   ASSERT_EQ(first->path, UpdatePath::kLocal);
+  ASSERT_EQ(first->failed_attempts, 0u);
+  const MeshArrays m1 = ArraysOf(*t);
   auto second = t->ApplyDisplacements(Brownian(n, 0.01 * spacing, rng));
   ASSERT_TRUE(second.ok()) << second.status();
   ASSERT_EQ(second->path, UpdatePath::kLocal);
+  ASSERT_EQ(second->failed_attempts, 0u);
+  const MeshArrays m2 = ArraysOf(*t);
   const uint64_t mesh_bytes = 8ull * t->view().mesh.num_half_edges;
   const uint64_t pos_bytes = sizeof(Vec2) * n;
-  // Up: positions (+ origin, twin, vertex_edge the first time). Down:
-  // origin, twin, vertex_edge.
-  const uint64_t down = mesh_bytes + 4ull * n;
-  EXPECT_EQ(first->transfer_bytes, down + pos_bytes + down);
-  EXPECT_EQ(second->transfer_bytes, pos_bytes + down);
+  // Up: positions (+ origin, twin, vertex_edge the first time). Down: what
+  // the attempt changed.
+  const uint64_t whole = mesh_bytes + 4ull * n;
+  const uint64_t down1 = DownloadBytes(m0, m1), down2 = DownloadBytes(m1, m2);
+  EXPECT_LT(down2, whole / 4);  // a small step changes little
+  EXPECT_EQ(first->transfer_bytes, whole + pos_bytes + down1);
+  EXPECT_EQ(second->transfer_bytes, pos_bytes + down2);
+  // A sparse step: 30 points move; their few changes come down.
+  {
+    std::vector<uint32_t> ids;
+    std::vector<Vec2> d;
+    for (uint32_t i = 0; i < 30; ++i) {
+      ids.push_back(i * 97);
+      d.push_back({0.05 * spacing, -0.03 * spacing});
+    }
+    auto sparse = t->ApplyDisplacements(
+        DisplacementBatch::Sparse(std::move(ids), std::move(d)));
+    ASSERT_TRUE(sparse.ok()) << sparse.status();
+    ASSERT_EQ(sparse->path, UpdatePath::kLocal);
+    ASSERT_EQ(sparse->failed_attempts, 0u);
+    // Besides: the candidate and seed triangles around the moved points
+    // (4 bytes each, a few dozen per point).
+    const uint64_t down = DownloadBytes(m2, ArraysOf(*t));
+    EXPECT_LT(down, 30 * 12 * 40);
+    EXPECT_GE(sparse->transfer_bytes, pos_bytes + down);
+    EXPECT_LE(sparse->transfer_bytes, pos_bytes + down + 30 * 2 * 4 * 24);
+    EXPECT_EQ(testing::EdgesAsPositions(*t),
+              testing::CgalDelaunayEdges(t->Positions()));
+  }
   EXPECT_GT(t->device_bytes(), mesh_bytes + pos_bytes);
   EXPECT_TRUE(t->Validate().ok());
   // The admission estimate holds after steps of every kind (a large step
@@ -589,7 +727,9 @@ TEST(DeviceExecutor, CudaBackendIsRefusedWithoutAGpu) {
     ASSERT_EQ(t.status().code(), absl::StatusCode::kFailedPrecondition);
     EXPECT_NE(t.status().message().find("cuda"), std::string::npos);
   }
+#if !defined(KINETRI_TEST_CUDA)
   EXPECT_TRUE(device::DeviceBackendAvailable(DeviceBackend::kEmulated));
+#endif
 }
 
 }  // namespace
