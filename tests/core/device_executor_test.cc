@@ -58,6 +58,10 @@ void ExpectSameMesh(const Triangulation& a, const Triangulation& b,
     ASSERT_EQ(va.mesh.origin[e], vb.mesh.origin[e]) << where << " e " << e;
     ASSERT_EQ(va.mesh.twin[e], vb.mesh.twin[e]) << where << " e " << e;
   }
+  ASSERT_EQ(va.num_points, vb.num_points) << where;
+  for (uint32_t v = 0; v < va.num_points; ++v) {
+    ASSERT_EQ(va.vertex_edge[v], vb.vertex_edge[v]) << where << " v " << v;
+  }
 }
 
 // Same input, same schedule: the emulated device executor and the round
@@ -620,6 +624,69 @@ TEST(DeviceExecutor, MeshStaysResidentAcrossSteps) {
               double(t->device_bytes()) / n);
   EXPECT_LE(t->device_bytes(), device::kDeviceBytesPerPoint * n +
                                    device::kDeviceQueryScratchBytes);
+}
+
+// A fixed attempt brings down what it changed: the half-edges and
+// vertex_edge entries that differ from the mesh it started from (12 bytes
+// each, after a 4-byte count), or the whole arrays when those are over an
+// eighth of the entries. Attempts from CGAL's mesh, small and large
+// changes, each checked against the bytes counted on the host and against
+// CGAL.
+TEST(DeviceExecutor, FixedAttemptDownloadsWhatChanged) {
+  const size_t n = 3000;
+  const std::vector<Vec2> pts = testing::UniformPoints(n, 95);
+  const std::vector<uint32_t> sites = AllSites(n);
+  auto a = device::MakeDeviceExecutor(kBackend);
+  ASSERT_TRUE(a.ok());
+  std::mt19937_64 rng(96);
+  const double spacing = 1.0 / std::sqrt(double(n));
+  // Small Brownian motion, and shears (no triangle inverts; legalizing
+  // flips more edges the stronger the shear).
+  struct Case {
+    double sigma, shear;
+  };
+  int patched = 0, whole = 0;
+  for (const Case c : {Case{0.005, 0}, Case{0.002, 0}, Case{0, 0.05},
+                       Case{0, 0.3}, Case{0, 1.5}}) {
+    std::normal_distribution<double> g(0.0, c.sigma * spacing);
+    std::vector<Vec2> to = pts;
+    for (Vec2& p : to) {
+      p.x += c.shear * p.y;
+      if (c.sigma > 0) {
+        p.x += g(rng);
+        p.y += g(rng);
+      }
+    }
+    const std::string where = "sigma " + std::to_string(c.sigma) + ", shear " +
+                              std::to_string(c.shear);
+    Mesh m = BuildDelaunayWithCgal(pts, sites);
+    const Mesh before = m;
+    (*a)->Invalidate();  // a mesh from elsewhere
+    auto r = (*a)->Attempt(m, to, nullptr, nullptr, 1.0, nullptr);
+    ASSERT_TRUE(r.ok()) << r.status();
+    ASSERT_TRUE(r->fixed) << where;
+    const uint64_t ne = m.num_half_edges(), nv = m.num_vertices();
+    uint64_t changed = 0;
+    for (uint64_t e = 0; e < ne; ++e) {
+      changed += m.origin()[e] != before.origin()[e] ||
+                 m.twin()[e] != before.twin()[e];
+    }
+    for (uint64_t v = 0; v < nv; ++v) {
+      changed += m.vertex_edge()[v] != before.vertex_edge()[v];
+    }
+    const bool as_patch = changed <= (ne + nv) / 8;
+    EXPECT_EQ(r->bytes_downloaded,
+              4 + (as_patch ? 12 * changed : 8 * ne + 4 * nv))
+        << where;
+    EXPECT_EQ(r->patched_downloads, as_patch ? 1u : 0u) << where;
+    (as_patch ? patched : whole) += 1;
+    EXPECT_EQ(EdgeSet(m), EdgeSet(BuildDelaunayWithCgal(to, sites))) << where;
+    std::printf("%s: %llu of %llu entries changed\n", where.c_str(),
+                static_cast<unsigned long long>(changed),
+                static_cast<unsigned long long>(ne + nv));
+  }
+  EXPECT_GT(patched, 0);
+  EXPECT_GT(whole, 0);
 }
 
 // Thrust's temporaries come from the executor's pool (counted in
