@@ -307,6 +307,17 @@ std::vector<std::pair<uint32_t, uint32_t>> EdgeSet(const Mesh& m) {
   return out;
 }
 
+// The 8 nearest of each of the points `ids` (by id, itself excluded).
+device::DeviceQuery KnnOfPoints(absl::Span<const uint32_t> ids) {
+  device::DeviceQuery q;
+  q.kind = device::DeviceQuery::Kind::kKNearest;
+  q.by_ids = true;
+  q.ids = ids;
+  q.k = 8;
+  q.exclude_self = true;
+  return q;
+}
+
 // An attempt stopped inside a device loop (the token is polled between
 // checks) leaves the mesh as it was and no mark behind: taken again, the
 // attempt gives the mesh a fresh executor gives, half-edge for half-edge.
@@ -426,14 +437,8 @@ TEST(DeviceExecutor, AsyncFormsGiveWhatTheSyncFormsGive) {
       Triangulation::Create(testing::ClusteredPoints(n, 83), DeviceOptions());
   ASSERT_TRUE(t.ok());
   ASSERT_TRUE(t->ApplyDisplacements(Brownian(n, 0.05 * spacing, rng)).ok());
-  std::vector<uint32_t> ids(n);
-  for (uint32_t i = 0; i < n; ++i) ids[i] = i;
-  device::DeviceQuery knn;
-  knn.kind = device::DeviceQuery::Kind::kKNearest;
-  knn.by_ids = true;
-  knn.ids = ids;
-  knn.k = 8;
-  knn.exclude_self = true;
+  const std::vector<uint32_t> ids = AllSites(n);
+  device::DeviceQuery knn = KnnOfPoints(ids);
   device::DeviceQuery radius = knn;
   radius.kind = device::DeviceQuery::Kind::kRadius;
   radius.radius = 2 * spacing;
@@ -497,14 +502,8 @@ TEST(DeviceExecutor, AsyncFormsWaitForTheCallersStream) {
 
   auto t = Triangulation::Create(to, DeviceOptions());
   ASSERT_TRUE(t.ok());
-  std::vector<uint32_t> ids(n);
-  for (uint32_t i = 0; i < n; ++i) ids[i] = i;
-  device::DeviceQuery knn;
-  knn.kind = device::DeviceQuery::Kind::kKNearest;
-  knn.by_ids = true;
-  knn.ids = ids;
-  knn.k = 8;
-  knn.exclude_self = true;
+  const std::vector<uint32_t> ids = AllSites(n);
+  const device::DeviceQuery knn = KnnOfPoints(ids);
   device::DeviceExecutor* d = t->device_executor();
   auto sync = d->Query(t->query_view(), t->steps(), knn);
   ASSERT_TRUE(sync.ok()) << sync.status();
