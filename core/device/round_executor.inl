@@ -1148,8 +1148,8 @@ class RoundDeviceExecutor final : public DeviceExecutor {
                       Raw(base_vertex_edge_), ne, cap, Raw(patch_count_),
                       Raw(patch_index_), Raw(patch_value_)});
     uint32_t np = 0;
+    (void)P();  // the count's download waits for the append
     staging_.ToHost(Raw(patch_count_), 1, &np, stream_);
-    ++waits_;
     if (np <= cap) {
       host_patch_index_.resize(np);
       host_patch_value_.resize(2ull * np);
