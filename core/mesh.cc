@@ -26,6 +26,36 @@ void Mesh::SwapArrays(std::vector<uint32_t>* origin,
   vertex_edge_.swap(*vertex_edge);
 }
 
+uint64_t Mesh::Fingerprint() const {
+  uint32_t lo = 0, hi = 0;
+  auto add = [&](const std::vector<uint32_t>& a, uint32_t salt) {
+    constexpr size_t kBlock = size_t{1} << 16;
+    const uint32_t* p = a.data();
+    const size_t n = a.size();
+    std::atomic<uint32_t> s0{salt}, s1{~salt};
+    ParallelFor(
+        0, (n + kBlock - 1) / kBlock,
+        [&](size_t b) {
+          const uint32_t end =
+              static_cast<uint32_t>(std::min(n, (b + 1) * kBlock));
+          uint32_t t0 = 0, t1 = 0;
+          for (uint32_t i = static_cast<uint32_t>(b * kBlock); i < end; ++i) {
+            t0 += (p[i] ^ (i * 0x9E3779B9u)) * 0x85EBCA6Bu;
+            t1 += (p[i] + (i * 0x7FEB352Du)) * 0xC2B2AE35u;
+          }
+          s0.fetch_add(t0, std::memory_order_relaxed);
+          s1.fetch_add(t1, std::memory_order_relaxed);
+        },
+        1);
+    lo = lo * 0x27D4EB2Fu + s0.load();
+    hi = hi * 0x165667B1u + s1.load();
+  };
+  add(origin_, 1);
+  add(twin_, 2);
+  add(vertex_edge_, 3);
+  return (uint64_t{hi} << 32) | lo;
+}
+
 void Mesh::RebuildVertexEdges() {
   vertex_edge_.assign(num_vertices_, kNoEdge);
   uint32_t* ve = vertex_edge_.data();

@@ -605,6 +605,7 @@ absl::Status Triangulation::AttemptOnDevice(
   report->device_waits += a->host_waits;
   report->device_loop_rounds += a->loop_rounds;
   report->device_loop_returns += a->loop_returns;
+  report->device_resyncs += a->resyncs;
   if (a->cancelled) {
     *result = -1;
   } else if (a->tangled) {

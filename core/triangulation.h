@@ -162,6 +162,10 @@ struct StepReport {
   uint64_t device_loop_rounds = 0;
   // ... and how often a loop handed a worklist that outgrew it back.
   uint64_t device_loop_returns = 0;
+  // Device executor: attempts that found the host mesh changed behind its
+  // back (DeviceAttempt::resyncs; always 0 unless the update driver forgot
+  // an Invalidate(): tests check it).
+  uint64_t device_resyncs = 0;
 };
 
 class Triangulation {

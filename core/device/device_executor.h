@@ -73,6 +73,11 @@ struct DeviceAttempt {
   // 1 when the fixed mesh came down as the half-edges and vertex_edge
   // entries it changed, not as the whole arrays.
   uint32_t patched_downloads = 0;
+  // 1 when the host mesh was not the copy the device kept (a caller that
+  // changed it without Invalidate(), which is a bug: the executor found it
+  // by the mesh's fingerprint and uploaded the mesh again, so the attempt
+  // is still exact).
+  uint32_t resyncs = 0;
 };
 
 // How the device executor runs the tail of legalizing, where rounds are
@@ -115,6 +120,17 @@ struct DeviceQuery {
   RowOptions rows;
   QueryLimits limits;
   size_t size() const { return by_ids ? ids.size() : positions.size(); }
+};
+
+// A device failure on demand (DeviceExecutor::InjectFault, for tests): the
+// device algorithm `after_calls` calls from now (every algorithm of the
+// executor's attempts and queries counts; 0 is the next one) fails as a
+// failing CUDA system makes it fail: exhausted memory (std::bad_alloc) or
+// an error (a thrown std::runtime_error, as thrust::system_error is).
+struct DeviceFault {
+  enum class Kind { kNone, kOutOfMemory, kError };
+  Kind kind = Kind::kNone;
+  uint64_t after_calls = 0;
 };
 
 // A stream of the caller's (a cudaStream_t on the CUDA backend) for the
@@ -193,6 +209,20 @@ class DeviceExecutor {
   // attempt. rounds_per_check 0 is taken as 1.
   virtual void set_loop_control(const LoopControl& control) = 0;
   virtual LoopControl loop_control() const = 0;
+
+  // Testing the error path: arms one device failure (DeviceFault; kNone
+  // disarms). It fires once, inside whatever attempt or query makes the
+  // armed call, which then ends as a device error ends: an attempt with
+  // RESOURCE_EXHAUSTED or INTERNAL, the host mesh untouched and the device
+  // state forgotten (the next attempt uploads the mesh again); a query with
+  // the same codes (its view is uploaded again by the next one).
+  // fault_armed() says whether it has not fired yet.
+  virtual void InjectFault(const DeviceFault& fault) = 0;
+  virtual bool fault_armed() const = 0;
+
+  // Queries running now (each holds scratch device memory until it
+  // returns, however it ends).
+  virtual uint32_t queries_in_flight() const = 0;
 };
 
 // Upper bound of the memory the device executor holds per point of a

@@ -50,6 +50,7 @@
 #include "core/device/atomic.h"
 #include "core/device/block_sizer.h"
 #include "core/device/device_executor.h"
+#include "core/device/fault_injector.h"
 #include "core/device/profile.h"
 #include "core/device/scratch_pool.inl"
 #include "core/device/staging.inl"
@@ -385,6 +386,9 @@ struct Scratch {
 class QueryEngine {
  public:
   QueryEngine() = default;
+  // The executor's fault injector (DeviceExecutor::InjectFault), asked
+  // before each device call; it outlives the engine.
+  void set_faults(FaultInjector* faults) { faults_ = faults; }
   QueryEngine(const QueryEngine&) = delete;
   QueryEngine& operator=(const QueryEngine&) = delete;
   ~QueryEngine() {
@@ -427,6 +431,13 @@ class QueryEngine {
     return out;
   }
 
+  // Calls that hold scratch now (0 once every query has returned, however
+  // it ended).
+  uint32_t in_flight() const {
+    std::lock_guard<std::mutex> lock(mu_);
+    return leased_;
+  }
+
   uint64_t bytes() const {
     std::lock_guard<std::mutex> lock(mu_);
     uint64_t words = 0;
@@ -462,6 +473,7 @@ class QueryEngine {
   // The policy of every Thrust algorithm below (temporaries from pool_);
   // each call counts one device algorithm.
   PoolPolicy P() {
+    if (faults_ != nullptr) faults_->BeforeCall();
     calls_.fetch_add(1, std::memory_order_relaxed);
     return Policy(pool_, Stream{});  // the default stream
   }
@@ -530,7 +542,8 @@ class QueryEngine {
     out.offsets.assign(size_t{n} + 1, 0);
     out.truncated.assign(n, 0);
     if (n == 0) return out;
-    Scratch* w = Acquire();
+    const ScratchLease lease(this);  // given back however the call ends
+    Scratch* w = lease.get();
     w->ids.resize(n);
     w->dist.resize(n);
     qthr::for_each(P(), qthr::counting_iterator<uint32_t>(0),
@@ -540,7 +553,6 @@ class QueryEngine {
     std::vector<double> h_dist(n);
     Download(w->staging, w->ids, n, &h_nn, 0);
     Download(w->staging, w->dist, n, &h_dist, 0);
-    Release(w);
     for (uint32_t i = 0; i < n; ++i) {
       out.offsets[i + 1] = out.offsets[i] + (h_nn[i] != kNoVertex ? 1 : 0);
     }
@@ -554,9 +566,26 @@ class QueryEngine {
     return out;
   }
 
+  // A call's scratch, from Acquire() until the call ends, however it ends
+  // (a device error is thrown through it).
+  class ScratchLease {
+   public:
+    explicit ScratchLease(QueryEngine* engine)
+        : engine_(engine), scratch_(engine->Acquire()) {}
+    ScratchLease(const ScratchLease&) = delete;
+    ScratchLease& operator=(const ScratchLease&) = delete;
+    ~ScratchLease() { engine_->Release(scratch_); }
+    Scratch* get() const { return scratch_; }
+
+   private:
+    QueryEngine* engine_;
+    Scratch* scratch_;
+  };
+
   // Scratch for one call (from the pool, or new).
   Scratch* Acquire() {
     std::lock_guard<std::mutex> lock(mu_);
+    ++leased_;
     if (!free_.empty()) {
       Scratch* s = free_.back();
       free_.pop_back();
@@ -575,8 +604,14 @@ class QueryEngine {
     }
     // The pool's blocks serve the blocks of one call; none is kept after
     // it (kDeviceQueryScratchBytes bounds what stays, the Scratch above).
-    pool_.Trim(0);
+    // (Called from ScratchLease's destructor: a device in error, which
+    // frees nothing more, must not throw out of it.)
+    try {
+      pool_.Trim(0);
+    } catch (...) {
+    }
     std::lock_guard<std::mutex> lock(mu_);
+    --leased_;
     free_.push_back(s);
   }
 
@@ -602,13 +637,8 @@ class QueryEngine {
     out.offsets.assign(nq + 1, 0);
     out.truncated.assign(nq, 0);
     if (nq == 0 || view_.num_sites == 0) return out;
-    Scratch* scratch = Acquire();
-    struct ReleaseAtEnd {
-      QueryEngine* engine;
-      Scratch* scratch;
-      ~ReleaseAtEnd() { engine->Release(scratch); }
-    } release{this, scratch};
-    absl::Status status = RowsWith(q, large_blocks, *scratch, &out);
+    const ScratchLease lease(this);
+    absl::Status status = RowsWith(q, large_blocks, *lease.get(), &out);
     if (!status.ok()) return status;
     return out;
   }
@@ -872,6 +902,8 @@ class QueryEngine {
   ScratchPool pool_;  // Thrust's temporaries of every call
   // Over the engine's life (KINETRI_DEVICE_PROFILE prints them).
   std::atomic<uint64_t> calls_{0}, runs_{0}, blocks_{0}, queries_{0}, nanos_{0};
+  FaultInjector* faults_ = nullptr;
+  uint32_t leased_ = 0;  // scratch out of free_ (guarded by mu_)
   std::atomic<uint64_t> phase_nanos_[kPhases] = {};
   bool valid_ = false;
   uint64_t generation_ = 0;

@@ -758,6 +758,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       : backend_(backend),
         device_(CurrentDevice()),
         loop_control_(DefaultLoopControl(backend)) {
+    queries_.set_faults(&faults_);
 #if THRUST_DEVICE_SYSTEM == THRUST_DEVICE_SYSTEM_CUDA
     // The session's own stream. Blocking (not cudaStreamNonBlocking): the
     // device vectors' own operations (resize, assign) run on the default
@@ -782,6 +783,9 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     std::lock_guard<std::mutex> lock(attempt_mu_);
     return loop_control_;
   }
+  void InjectFault(const DeviceFault& fault) override { faults_.Arm(fault); }
+  bool fault_armed() const override { return faults_.armed(); }
+  uint32_t queries_in_flight() const override { return queries_.in_flight(); }
 
   uint64_t device_bytes() const override {
     uint64_t words = 0;
@@ -1000,9 +1004,20 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     auto t0 = std::chrono::steady_clock::now();
     const uint32_t nt = mesh.num_triangles();
     const uint32_t nv = mesh.num_vertices();
+    // The base must be the host mesh: checked by fingerprint (a parallel
+    // pass over the host arrays, Mesh::Fingerprint), so that a caller that
+    // changed the mesh without Invalidate() costs an upload, not a wrong
+    // mesh.
+    const uint64_t fingerprint = mesh.Fingerprint();
+    if (!host_changed_ && base_origin_.size() == mesh.num_half_edges() &&
+        nv_ == nv && fingerprint != base_fingerprint_) {
+      out.resyncs = 1;
+      host_changed_ = true;
+    }
     if (host_changed_ || base_origin_.size() != mesh.num_half_edges() ||
         nv_ != nv) {
       // The host mesh changed (or was never here): it becomes the base.
+      base_fingerprint_ = fingerprint;
       Upload(absl::MakeConstSpan(mesh.origin()), base_origin_);
       Upload(absl::MakeConstSpan(mesh.twin()), base_twin_);
       Upload(absl::MakeConstSpan(mesh.vertex_edge()), base_vertex_edge_);
@@ -1096,6 +1111,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     t0 = std::chrono::steady_clock::now();
     DownloadResult(mesh, &out);
     out.transfer_seconds += Since(t0);
+    base_fingerprint_ = mesh.Fingerprint();
     out.fixed = true;
     // The result is the host mesh now: it becomes the base (the next attempt
     // copies it back into the working arrays).
@@ -1110,12 +1126,14 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   // A() for the rest (no wait on the CUDA system). Each call counts one
   // device algorithm (and P() one wait), and marks its line on clock_.
   PoolPolicy P(int line = __builtin_LINE()) {
+    faults_.BeforeCall();
     ++calls_;
     ++waits_;
     clock_.Mark(line);
     return Policy(pool_, stream_);
   }
   NoWaitPolicy A(int line = __builtin_LINE()) {
+    faults_.BeforeCall();
     ++calls_;
     clock_.Mark(line);
     return PolicyNoWait(pool_, stream_);
@@ -1483,8 +1501,9 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   // loop_control_ against calls from other threads.
   mutable std::mutex attempt_mu_;
   LoopControl loop_control_;
-  bool host_changed_ = true;      // Invalidate(): the base is not the host's
-  bool working_is_base_ = false;  // origin_, twin_, vertex_edge_ == base
+  bool host_changed_ = true;       // Invalidate(): the base is not the host's
+  uint64_t base_fingerprint_ = 0;  // Mesh::Fingerprint() of the base
+  bool working_is_base_ = false;   // origin_, twin_, vertex_edge_ == base
   uint32_t nv_ = 0;
   // The host mesh on the device (the base) and the copy an attempt changes.
   U32Vector base_origin_, base_twin_, base_vertex_edge_;
@@ -1535,7 +1554,8 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     uint64_t downloads = 0;
     uint64_t patched_downloads = 0;
   } totals_;
-  QueryEngine queries_;  // the query view and the queries over it
+  FaultInjector faults_;  // DeviceExecutor::InjectFault
+  QueryEngine queries_;   // the query view and the queries over it
 };
 
 }  // namespace

@@ -13,7 +13,10 @@
 #include <atomic>
 #include <cmath>
 #include <cstdio>
+#include <functional>
+#include <optional>
 #include <random>
+#include <string>
 #include <vector>
 
 #if defined(KINETRI_TEST_CUDA)
@@ -26,6 +29,7 @@
 #include "core/cancel.h"
 #include "core/cgal_builder.h"
 #include "core/mesh.h"
+#include "core/predicates.h"
 #include "core/queries.h"
 #include "core/triangulation.h"
 #include "tests/core/test_util.h"
@@ -103,6 +107,7 @@ TEST(DeviceExecutor, EqualsTheRoundExecutorHalfEdgeForHalfEdge) {
       EXPECT_EQ(rr->flips.fix_rounds, rd->flips.fix_rounds) << where;
       EXPECT_EQ(rr->flips.legalize_rounds, rd->flips.legalize_rounds) << where;
       EXPECT_EQ(rr->failed_attempts, rd->failed_attempts) << where;
+      EXPECT_EQ(rd->device_resyncs, 0u) << where;
       ExpectSameMesh(*rounds, *dev, where);
       ASSERT_TRUE(dev->Validate().ok()) << where << dev->Validate();
       EXPECT_EQ(testing::EdgesAsPositions(*dev),
@@ -318,6 +323,33 @@ device::DeviceQuery KnnOfPoints(absl::Span<const uint32_t> ids) {
   return q;
 }
 
+// Takes the attempt to `to` again with `a`, and with a fresh executor from
+// a copy of `m`: both must succeed and leave the same mesh, half-edge for
+// half-edge. Returns `a`'s result (nullopt after a failure, reported).
+std::optional<device::DeviceAttempt> AgainAsAFreshExecutor(
+    device::DeviceExecutor& a, Mesh& m, absl::Span<const Vec2> to,
+    const std::string& where) {
+  Mesh fresh_mesh = m;
+  auto fresh = device::MakeDeviceExecutor(kBackend);
+  if (!fresh.ok()) {
+    ADD_FAILURE() << where << ": " << fresh.status();
+    return std::nullopt;
+  }
+  auto again = a.Attempt(m, to, nullptr, nullptr, 0.5, nullptr);
+  auto other =
+      (*fresh)->Attempt(fresh_mesh, to, nullptr, nullptr, 0.5, nullptr);
+  if (!again.ok() || !other.ok()) {
+    ADD_FAILURE() << where << ": " << again.status() << other.status();
+    return std::nullopt;
+  }
+  EXPECT_EQ(again->fixed, other->fixed) << where;
+  EXPECT_EQ(again->counts.delaunay, other->counts.delaunay) << where;
+  EXPECT_EQ(m.origin(), fresh_mesh.origin()) << where;
+  EXPECT_EQ(m.twin(), fresh_mesh.twin()) << where;
+  EXPECT_EQ(m.vertex_edge(), fresh_mesh.vertex_edge()) << where;
+  return *std::move(again);
+}
+
 // An attempt stopped inside a device loop (the token is polled between
 // checks) leaves the mesh as it was and no mark behind: taken again, the
 // attempt gives the mesh a fresh executor gives, half-edge for half-edge.
@@ -349,23 +381,244 @@ TEST(DeviceExecutor, AttemptStoppedInsideADeviceLoopLeavesNoMark) {
     stopped_in_loop += r->loop_rounds > 0 ? 1 : 0;
     EXPECT_EQ(EdgeSet(m), before) << "poll " << k;
     // Again without a token, and on a fresh executor from the same mesh.
-    Mesh fresh_mesh = m;
-    auto fresh = device::MakeDeviceExecutor(kBackend);
-    ASSERT_TRUE(fresh.ok());
-    auto again = (*a)->Attempt(m, to, nullptr, nullptr, 0.5, nullptr);
-    auto other =
-        (*fresh)->Attempt(fresh_mesh, to, nullptr, nullptr, 0.5, nullptr);
-    ASSERT_TRUE(again.ok() && other.ok());
-    ASSERT_EQ(again->fixed, other->fixed) << "poll " << k;
-    EXPECT_EQ(again->counts.delaunay, other->counts.delaunay);
-    EXPECT_EQ(m.origin(), fresh_mesh.origin()) << "poll " << k;
-    EXPECT_EQ(m.twin(), fresh_mesh.twin()) << "poll " << k;
+    const auto again =
+        AgainAsAFreshExecutor(**a, m, to, "poll " + std::to_string(k));
+    ASSERT_TRUE(again.has_value());
     if (again->fixed) {
       EXPECT_EQ(EdgeSet(m), EdgeSet(BuildDelaunayWithCgal(to, sites)));
       pts = to;
     }
   }
   EXPECT_GE(stopped_in_loop, 3);
+}
+
+// A device call that fails (exhausted memory, or an error of the CUDA
+// system; injected at calls spread over whole attempts: uploads, fixing
+// and legalizing rounds, the hull check, the download) ends the attempt
+// with RESOURCE_EXHAUSTED or INTERNAL and leaves the host mesh exactly as
+// it was; the same executor then takes the step as a fresh one does, half-
+// edge for half-edge.
+TEST(DeviceExecutor, AFailedDeviceCallLeavesTheMeshAsItWas) {
+  const size_t n = 2000;
+  std::vector<Vec2> pts = testing::UniformPoints(n, 71);
+  const std::vector<uint32_t> sites = AllSites(n);
+  std::mt19937_64 rng(72);
+  std::normal_distribution<double> g(0.0, 0.3 / std::sqrt(double(n)));
+  auto moved = [&] {
+    std::vector<Vec2> to = pts;
+    for (Vec2& p : to) {
+      p.x += g(rng);
+      p.y += g(rng);
+    }
+    return to;
+  };
+  // How many device calls an attempt on a fresh executor makes.
+  uint64_t calls = 0;
+  {
+    Mesh m = BuildDelaunayWithCgal(pts, sites);
+    auto probe = device::MakeDeviceExecutor(kBackend);
+    ASSERT_TRUE(probe.ok());
+    auto r = (*probe)->Attempt(m, moved(), nullptr, nullptr, 0.5, nullptr);
+    ASSERT_TRUE(r.ok()) << r.status();
+    calls = r->device_calls;
+  }
+  ASSERT_GT(calls, 20u);
+  Mesh m = BuildDelaunayWithCgal(pts, sites);
+  auto a = device::MakeDeviceExecutor(kBackend);
+  ASSERT_TRUE(a.ok());
+  using Kind = device::DeviceFault::Kind;
+  int fired = 0;
+  for (const Kind kind : {Kind::kOutOfMemory, Kind::kError}) {
+    for (const double at : {0.0, 0.05, 0.2, 0.4, 0.6, 0.8, 0.95, 0.99}) {
+      const std::string where =
+          std::string(kind == Kind::kOutOfMemory ? "out of memory" : "error") +
+          " at " + std::to_string(at);
+      const std::vector<Vec2> to = moved();
+      const std::vector<uint32_t> origin = m.origin(), twin = m.twin(),
+                                  vertex_edge = m.vertex_edge();
+      (*a)->InjectFault({kind, static_cast<uint64_t>(at * double(calls))});
+      auto r = (*a)->Attempt(m, to, nullptr, nullptr, 0.5, nullptr);
+      if ((*a)->fault_armed()) {  // the attempt made fewer calls
+        (*a)->InjectFault({});
+        ASSERT_TRUE(r.ok()) << where << ": " << r.status();
+      } else {
+        ++fired;
+        ASSERT_FALSE(r.ok()) << where;
+        EXPECT_EQ(r.status().code(), kind == Kind::kOutOfMemory
+                                         ? absl::StatusCode::kResourceExhausted
+                                         : absl::StatusCode::kInternal)
+            << where << ": " << r.status();
+        EXPECT_EQ(m.origin(), origin) << where;
+        EXPECT_EQ(m.twin(), twin) << where;
+        EXPECT_EQ(m.vertex_edge(), vertex_edge) << where;
+      }
+      // Again on the same executor, and on a fresh one from the same mesh.
+      const auto again = AgainAsAFreshExecutor(**a, m, to, where);
+      ASSERT_TRUE(again.has_value());
+      if (again->fixed) {
+        EXPECT_EQ(EdgeSet(m), EdgeSet(BuildDelaunayWithCgal(to, sites)))
+            << where;
+        pts = to;
+      } else {
+        m = BuildDelaunayWithCgal(pts, sites);  // stuck: start over
+        (*a)->Invalidate();
+      }
+    }
+  }
+  EXPECT_GE(fired, 12);
+}
+
+// The executor keeps the host mesh on the device between attempts and
+// trusts the caller to Invalidate() after changing it; a caller that
+// forgets is caught by the mesh's fingerprint: the attempt uploads the
+// mesh again (resyncs 1) and gives what a fresh executor gives from the
+// changed mesh. Told, it does not count a resync.
+TEST(DeviceExecutor, AMeshChangedBehindItsBackIsUploadedAgain) {
+  const size_t n = 2000;
+  const std::vector<Vec2> pts = testing::UniformPoints(n, 51);
+  const std::vector<uint32_t> sites = AllSites(n);
+  Mesh m = BuildDelaunayWithCgal(pts, sites);
+  auto a = device::MakeDeviceExecutor(kBackend);
+  ASSERT_TRUE(a.ok());
+  // The points stay where they are: each round's host change is one flip
+  // to the other diagonal of a convex quad, which legalizing flips back.
+  auto r = (*a)->Attempt(m, pts, nullptr, nullptr, 0.5, nullptr);
+  ASSERT_TRUE(r.ok() && r->fixed) << r.status();
+  EXPECT_EQ(r->resyncs, 0u);
+  uint32_t from = 0;
+  for (int round = 0; round < 4; ++round) {
+    // Flip an interior edge whose quad is convex, on the host: still a
+    // triangulation of the points, no longer Delaunay, and not the
+    // device's copy.
+    const MeshView v = m.view();
+    uint32_t flipped = kNoEdge;
+    for (uint32_t e = from; e < v.num_half_edges && flipped == kNoEdge; ++e) {
+      const uint32_t f = v.twin[e];
+      if (e > f || v.IsGhost(e / 3) || v.IsGhost(f / 3)) continue;
+      const Vec2 &pa = pts[v.origin[e]], &pb = pts[v.Dest(e)],
+                 &pc = pts[v.Apex(e)], &pd = pts[v.Across(e)];
+      if (Orient2d(pc, pd, pa) < 0 && Orient2d(pd, pc, pb) < 0) {
+        v.Flip(e);
+        flipped = e;
+      }
+    }
+    ASSERT_NE(flipped, kNoEdge);
+    from = flipped + 997;
+    m.RebuildVertexEdges();
+    const bool tell = round % 2 == 1;
+    if (tell) (*a)->Invalidate();
+    const std::string where = "round " + std::to_string(round);
+    const auto again = AgainAsAFreshExecutor(**a, m, pts, where);
+    ASSERT_TRUE(again.has_value());
+    EXPECT_EQ(again->resyncs, tell ? 0u : 1u) << where;
+    ASSERT_TRUE(again->fixed) << where;
+    EXPECT_GE(again->counts.delaunay, 1u) << where;
+    EXPECT_EQ(EdgeSet(m), EdgeSet(BuildDelaunayWithCgal(pts, sites))) << round;
+    // Nothing changed since: no resync.
+    auto still = (*a)->Attempt(m, pts, nullptr, nullptr, 0.5, nullptr);
+    ASSERT_TRUE(still.ok() && still->fixed) << still.status();
+    EXPECT_EQ(still->resyncs, 0u) << round;
+  }
+}
+
+// A query whose device call fails is refused with RESOURCE_EXHAUSTED or
+// INTERNAL; the next query (its view uploaded again where the failure hit
+// the upload) gives the answer of a query that never failed, and no query
+// holds its scratch after it returned. (Not device_bytes(): the blocks'
+// sizes, and so the scratch kept, follow their timing.)
+TEST(DeviceExecutor, AFailedQueryIsRefusedAndTheNextOneAnswers) {
+  const size_t n = 3000;
+  const std::vector<Vec2> pts = testing::ClusteredPoints(n, 81);
+  auto t = Triangulation::Create(pts, DeviceOptions());
+  ASSERT_TRUE(t.ok()) << t.status();
+  std::mt19937_64 rng(82);
+  ASSERT_TRUE(
+      t->ApplyDisplacements(Brownian(n, 0.1 / std::sqrt(double(n)), rng)).ok());
+  std::vector<uint32_t> ids(n);
+  for (uint32_t i = 0; i < n; ++i) ids[i] = i;
+  const double r = 2.0 / std::sqrt(double(n));
+  auto knn = [&] { return KNearestOfPoints(*t, ids, 8, true); };
+  auto radius = [&] { return WithinRadiusOfPoints(*t, ids, r, true, 0); };
+  auto all_nn = [&] { return AllNearestNeighbors(*t); };
+  struct Kind {
+    const char* name;
+    std::function<absl::StatusOr<NeighborLists>()> run;
+  };
+  const std::vector<Kind> kinds = {
+      {"k nearest", knn}, {"radius", radius}, {"all nearest", all_nn}};
+  device::DeviceExecutor* d = t->device_executor();
+  ASSERT_NE(d, nullptr);
+  std::vector<NeighborLists> want;
+  for (const Kind& k : kinds) {
+    auto a = k.run();
+    ASSERT_TRUE(a.ok()) << k.name << ": " << a.status();
+    want.push_back(*std::move(a));
+  }
+  int fired = 0;
+  for (size_t i = 0; i < kinds.size(); ++i) {
+    for (const auto fault_kind : {device::DeviceFault::Kind::kOutOfMemory,
+                                  device::DeviceFault::Kind::kError}) {
+      for (uint64_t after : {0, 1, 2, 3, 5}) {
+        const std::string where = std::string(kinds[i].name) + " after " +
+                                  std::to_string(after) + " calls";
+        d->InjectFault({fault_kind, after});
+        auto got = kinds[i].run();
+        if (d->fault_armed()) {
+          d->InjectFault({});
+          ASSERT_TRUE(got.ok()) << where << ": " << got.status();
+        } else {
+          ++fired;
+          ASSERT_FALSE(got.ok()) << where;
+          EXPECT_EQ(got.status().code(),
+                    fault_kind == device::DeviceFault::Kind::kOutOfMemory
+                        ? absl::StatusCode::kResourceExhausted
+                        : absl::StatusCode::kInternal)
+              << where << ": " << got.status();
+        }
+        EXPECT_EQ(d->queries_in_flight(), 0u) << where;
+        auto next = kinds[i].run();
+        ASSERT_TRUE(next.ok()) << where << ": " << next.status();
+        EXPECT_EQ(next->offsets, want[i].offsets) << where;
+        EXPECT_EQ(next->ids, want[i].ids) << where;
+        EXPECT_EQ(next->distances, want[i].distances) << where;
+      }
+    }
+  }
+  EXPECT_GE(fired, 10);
+}
+
+// A step whose device attempt fails is taken on the host (a rebuild, the
+// reason naming the device), exact; the step after it runs on the device
+// again.
+TEST(DeviceExecutor, AStepWhoseDeviceFailsIsTakenOnTheHost) {
+  const size_t n = 3000;
+  const std::vector<Vec2> pts = testing::UniformPoints(n, 61);
+  auto t = Triangulation::Create(pts, DeviceOptions());
+  ASSERT_TRUE(t.ok()) << t.status();
+  std::mt19937_64 rng(62);
+  const double sigma = 0.05 / std::sqrt(double(n));
+  ASSERT_TRUE(t->ApplyDisplacements(Brownian(n, sigma, rng)).ok());
+  for (const auto kind : {device::DeviceFault::Kind::kOutOfMemory,
+                          device::DeviceFault::Kind::kError}) {
+    t->device_executor()->InjectFault({kind, 3});
+    auto r = t->ApplyDisplacements(Brownian(n, sigma, rng));
+    ASSERT_TRUE(r.ok()) << r.status();
+    EXPECT_FALSE(t->device_executor()->fault_armed());
+    EXPECT_EQ(r->path, UpdatePath::kRebuilt);
+    EXPECT_NE(r->fallback_reason.find("device executor failed"),
+              std::string::npos)
+        << r->fallback_reason;
+    ASSERT_TRUE(t->Validate().ok()) << t->Validate();
+    EXPECT_EQ(testing::EdgesAsPositions(*t),
+              testing::CgalDelaunayEdges(t->Positions()));
+    auto next = t->ApplyDisplacements(Brownian(n, sigma, rng));
+    ASSERT_TRUE(next.ok()) << next.status();
+    EXPECT_EQ(next->device_resyncs, 0u);
+    EXPECT_NE(next->path, UpdatePath::kRebuilt) << next->fallback_reason;
+    EXPECT_GT(next->device_calls, 0u);
+    EXPECT_EQ(testing::EdgesAsPositions(*t),
+              testing::CgalDelaunayEdges(t->Positions()));
+  }
 }
 
 // The _async forms give what the sync forms give: attempts on two

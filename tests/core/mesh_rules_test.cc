@@ -4,6 +4,7 @@
 // (core/vertex_ops.h) and the serial stack loops of the region executor,
 // each against CGAL's triangulation of the same points.
 #include <gtest/gtest.h>
+#include <tbb/task_arena.h>
 
 #include <algorithm>
 #include <atomic>
@@ -110,6 +111,40 @@ TEST(Mesh, FourFlipsAreTheIdentityAndKeepTwins) {
   for (int k = 0; k < 3; ++k) m.Flip(e);
   EXPECT_EQ(mesh.origin(), origin);
   EXPECT_EQ(mesh.twin(), twin);
+}
+
+// Mesh::Fingerprint: equal meshes (a copy) give equal fingerprints, on one
+// thread or all; one changed entry of any array changes it, and putting
+// it back restores it; a flip changes it.
+TEST(Mesh, FingerprintFollowsEveryEntry) {
+  const auto pts = testing::UniformPoints(30000, 4);
+  Mesh mesh = BuildDelaunayWithCgal(pts, AllSites(pts.size()));
+  const uint64_t f = mesh.Fingerprint();
+  const Mesh copy = mesh;
+  EXPECT_EQ(copy.Fingerprint(), f);
+  uint64_t one_thread = 0;
+  tbb::task_arena(1).execute([&] { one_thread = mesh.Fingerprint(); });
+  EXPECT_EQ(one_thread, f);
+  std::vector<uint32_t>& ve = mesh.mutable_vertex_edge();
+  for (const uint32_t v : {0u, 12345u, 29999u}) {
+    const uint32_t old = ve[v];
+    ve[v] = old + 1;
+    EXPECT_NE(mesh.Fingerprint(), f) << "vertex_edge " << v;
+    ve[v] = old;
+  }
+  for (const uint32_t e : {0u, 77777u, mesh.num_half_edges() - 1}) {
+    const uint32_t o = mesh.origin()[e], t = mesh.twin()[e];
+    mesh.SetHalfEdge(e, o ^ 1u, t);
+    EXPECT_NE(mesh.Fingerprint(), f) << "origin " << e;
+    mesh.SetHalfEdge(e, o, t ^ 4u);
+    EXPECT_NE(mesh.Fingerprint(), f) << "twin " << e;
+    mesh.SetHalfEdge(e, o, t);
+  }
+  EXPECT_EQ(mesh.Fingerprint(), f);
+  const uint32_t e = InteriorEdge(mesh);
+  ASSERT_NE(e, kNoEdge);
+  mesh.view().Flip(e);
+  EXPECT_NE(mesh.Fingerprint(), f);
 }
 
 // Unflip undoes a flip exactly (every origin and twin), including a chain

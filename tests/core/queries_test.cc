@@ -337,7 +337,9 @@ TEST(Queries, SmallGraphBatchesReadTheMesh) {
     std::vector<uint32_t> all(pts.size());
     std::iota(all.begin(), all.end(), 0);
     ASSERT_TRUE(KNearestOfPoints(*t, all, 3, true, {}, graph).ok());
-    if (host) EXPECT_NE(t->view_with_cached_rows().adj_offsets, nullptr);
+    if (host) {
+      EXPECT_NE(t->view_with_cached_rows().adj_offsets, nullptr);
+    }
     const auto after = small();
     ASSERT_EQ(before.size(), after.size());
     for (size_t c = 0; c < before.size(); ++c) {

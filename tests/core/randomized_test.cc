@@ -85,6 +85,7 @@ void RunScenario(uint64_t seed) {
     }
     auto r = t->ApplyDisplacements(batch);
     ASSERT_TRUE(r.ok()) << r.status();
+    EXPECT_EQ(r->device_resyncs, 0u) << "seed " << seed << " step " << s;
     ASSERT_TRUE(t->Validate().ok())
         << "seed " << seed << " step " << s << ": " << t->Validate();
     ASSERT_EQ(testing::EdgesAsPositions(*t),
