@@ -49,6 +49,11 @@ ABSL_FLAG(double, filter_fraction, -1,
 ABSL_FLAG(int, max_subdivision_depth, -1,
           "round executor: override RoundStepPolicy::max_subdivision_depth "
           "(-1: default)");
+ABSL_FLAG(bool, hold_culprits, true,
+          "round executor: hold a stalled fixing round's culprits back and "
+          "go on (RoundStepPolicy::hold_culprits); false: the attempt fails "
+          "and is repeated with the stuck vertices and their neighbours "
+          "held");
 
 namespace {
 
@@ -140,6 +145,7 @@ int main(int argc, char** argv) {
   if (absl::GetFlag(FLAGS_filter_fraction) >= 0) {
     opt.region.filter_fraction = absl::GetFlag(FLAGS_filter_fraction);
   }
+  opt.round.hold_culprits = absl::GetFlag(FLAGS_hold_culprits);
   if (absl::GetFlag(FLAGS_max_subdivision_depth) >= 0) {
     opt.round.max_subdivision_depth =
         absl::GetFlag(FLAGS_max_subdivision_depth);

@@ -39,7 +39,10 @@ KINETRI_HD inline bool StrictlyBetween(const Vec2& p, const Vec2& a,
 }
 
 // Hull turn p -> a -> q (counter-clockwise hull order) is convex or straight.
-KINETRI_HD inline bool TurnOk(const Vec2* pos, uint32_t p, uint32_t a,
+// (pos: a pointer to the positions, or anything indexed as one, such as
+// PosWith below.)
+template <typename Pos>
+KINETRI_HD inline bool TurnOk(const Pos& pos, uint32_t p, uint32_t a,
                               uint32_t q) {
   if (p == q || p == a || a == q || p == kInfiniteVertex ||
       q == kInfiniteVertex || a == kInfiniteVertex) {
@@ -68,7 +71,8 @@ KINETRI_HD inline uint32_t SpokeNext(const MeshView& m, uint32_t spoke) {
   return m.origin[Prev(spoke)];
 }
 
-KINETRI_HD inline bool TriangleOk(const MeshView& m, const Vec2* pos,
+template <typename Pos>
+KINETRI_HD inline bool TriangleOk(const MeshView& m, const Pos& pos,
                                   uint32_t t) {
   const uint32_t a = m.origin[3 * t], b = m.origin[3 * t + 1],
                  c = m.origin[3 * t + 2];
@@ -79,6 +83,86 @@ KINETRI_HD inline bool TriangleOk(const MeshView& m, const Vec2* pos,
     return TurnOk(pos, SpokePrev(m, s), m.origin[s], SpokeNext(m, s));
   }
   return Orient2d(pos[a], pos[b], pos[c]) > 0;
+}
+
+// The positions with vertex u's replaced by pu (what-if tests of the rules
+// above, without writing the shared array).
+struct PosWith {
+  const Vec2* pos;
+  uint32_t u;
+  Vec2 pu;
+  KINETRI_HD const Vec2& operator[](uint32_t i) const {
+    return i == u ? pu : pos[i];
+  }
+};
+
+// Calls fn(t) for every triangle around the origin of half-edge e0 and, for
+// its ghost triangles, their three neighbours (the hull turns at the
+// origin's hull neighbours read its position too): every triangle whose
+// TriangleOk reads that vertex. Triangles may come more than once.
+template <typename Fn>
+KINETRI_HD inline void ForEachStarAndHullRing(const MeshView& m, uint32_t e0,
+                                              Fn&& fn) {
+  if (e0 == kNoEdge) return;
+  uint32_t e = e0;
+  do {
+    const uint32_t t = TriangleOf(e);
+    fn(t);
+    if (m.IsGhost(t)) {
+      for (uint32_t h = 3 * t; h < 3 * t + 3; ++h) fn(TriangleOf(m.twin[h]));
+    }
+    e = m.twin[Prev(e)];
+  } while (e != e0);
+}
+
+// The hold-back rule: the culprits of an invalid triangle t that no flip
+// repairs, among the vertices its TriangleOk reads (its corners; for a
+// ghost triangle the three of its hull turn) for which moving(u) holds
+// (u moved and may still be held back: pos[u] != from[u] at least): the
+// one whose old position alone makes t valid (the farthest moved if several
+// do), else every moving one. Writes them, each with a half-edge leaving it
+// (for its star), to vertex[] / edge[] and returns how many (0: none).
+template <typename Moving>
+KINETRI_HD inline int Culprits(const MeshView& m, const Vec2* pos,
+                               const Vec2* from, uint32_t t,
+                               const Moving& moving, uint32_t vertex[3],
+                               uint32_t edge[3]) {
+  uint32_t cand[3], out_edge[3];
+  if (m.IsGhost(t)) {
+    const uint32_t s = SpokeOf(m, t);
+    if (s == kNoEdge) return 0;
+    out_edge[0] = Prev(m.twin[s]);
+    out_edge[1] = s;
+    out_edge[2] = Prev(s);
+  } else {
+    for (uint32_t k = 0; k < 3; ++k) out_edge[k] = 3 * t + k;
+  }
+  for (int k = 0; k < 3; ++k) cand[k] = m.origin[out_edge[k]];
+  int best = -1;
+  double best_d = -1.0;
+  bool any = false;
+  for (int k = 0; k < 3; ++k) {
+    const uint32_t u = cand[k];
+    if (u == kInfiniteVertex || u == kNoVertex || !moving(u)) continue;
+    any = true;
+    const double dx = pos[u].x - from[u].x, dy = pos[u].y - from[u].y;
+    const double d = dx * dx + dy * dy;
+    if (d > best_d && TriangleOk(m, PosWith{pos, u, from[u]}, t)) {
+      best = k;
+      best_d = d;
+    }
+  }
+  if (!any) return 0;
+  int n = 0;
+  for (int k = 0; k < 3; ++k) {
+    const uint32_t u = cand[k];
+    if (best >= 0 && k != best) continue;
+    if (u == kInfiniteVertex || u == kNoVertex || !moving(u)) continue;
+    vertex[n] = u;
+    edge[n] = out_edge[k];
+    ++n;
+  }
+  return n;
 }
 
 // Every triangle may be read (the unbounded rules).

@@ -157,6 +157,47 @@ std::vector<uint32_t> KineticExecutor::FindInvalidTriangles(
   return idx;
 }
 
+namespace {
+
+// One hold-back of fixing rounds (KineticExecutor::Fix): the culprits of the
+// stalled triangles `bad` (rules::Culprits; a vertex once, with the smallest
+// of its half-edges found) go back to `from` in `to` and are appended to
+// *held; *next becomes `bad` plus every triangle whose validity reads a
+// held vertex, sorted and unique. False when no triangle has a culprit.
+// The device executor's hold-back (core/device/round_executor.inl) is the
+// same, step for step, so that both give the same mesh.
+bool HoldCulprits(const MeshView& m, Vec2* to, const Vec2* from,
+                  const std::vector<uint32_t>& bad, std::vector<uint32_t>* held,
+                  std::vector<uint32_t>* next) {
+  auto moving = [&](uint32_t u) { return to[u] != from[u]; };
+  std::vector<std::pair<uint32_t, uint32_t>> culprits;  // (vertex, edge)
+  for (uint32_t t : bad) {
+    uint32_t v[3], e[3];
+    const int n = rules::Culprits(m, to, from, t, moving, v, e);
+    for (int k = 0; k < n; ++k) culprits.emplace_back(v[k], e[k]);
+  }
+  std::sort(culprits.begin(), culprits.end());
+  culprits.erase(std::unique(culprits.begin(), culprits.end(),
+                             [](const auto& a, const auto& b) {
+                               return a.first == b.first;
+                             }),
+                 culprits.end());
+  if (culprits.empty()) return false;
+  *next = bad;
+  for (const auto& [v, e] : culprits) {
+    to[v] = from[v];
+    held->push_back(v);
+  }
+  for (const auto& [v, e] : culprits) {
+    rules::ForEachStarAndHullRing(m, e,
+                                  [next](uint32_t t) { next->push_back(t); });
+  }
+  SortUnique(*next);
+  return true;
+}
+
+}  // namespace
+
 void FlipScratch::Ensure(const Mesh& mesh) {
   if (tri_claim.size() < mesh.num_triangles()) {
     tri_claim.resize(mesh.num_triangles(), kNoEdge);
@@ -169,7 +210,8 @@ void FlipScratch::Ensure(const Mesh& mesh) {
 bool KineticExecutor::Fix(Mesh& mesh, const std::vector<Vec2>& pos,
                           std::vector<uint32_t> invalid, FlipScratch& scratch,
                           FlipCounts* counts, std::vector<uint32_t>* touched,
-                          FixLog* log, std::vector<uint32_t>* stuck) {
+                          FixLog* log, std::vector<uint32_t>* stuck,
+                          HoldBack* hold) {
   const MeshView m = mesh.view();
   const Vec2* p = pos.data();
   scratch.Ensure(mesh);
@@ -193,6 +235,17 @@ bool KineticExecutor::Fix(Mesh& mesh, const std::vector<Vec2>& pos,
     std::vector<rules::FixProposal> valid;
     for (const auto& pr : props) {
       if (pr.edge != kNoEdge) valid.push_back(pr);
+    }
+    if (valid.empty() && hold != nullptr) {
+      // Stalled: hold the culprits back and go on around them.
+      std::vector<uint32_t> bad(bad_idx.size());
+      for (size_t i = 0; i < bad_idx.size(); ++i) bad[i] = work[bad_idx[i]];
+      std::vector<uint32_t> next;
+      if (HoldCulprits(m, hold->to->data(), hold->from->data(), bad,
+                       &hold->held, &next)) {
+        work = std::move(next);
+        continue;
+      }
     }
     if (valid.empty()) {
       if (stuck) {

@@ -55,6 +55,14 @@ struct RoundStepPolicy {
   uint32_t reinsert_min = 64;
   double reinsert_fraction = 0.125;
   uint32_t min_sites_left = 8;
+  // Hold-back inside fixing: when a fixing round finds no flip for the
+  // invalid triangles left, their culprits (rules::Culprits) go back to
+  // their old positions and fixing goes on around them (KineticExecutor::
+  // HoldBack), instead of the attempt ending stuck; they then finish their
+  // motion in later passes, halved first. false: a stalled attempt ends
+  // stuck and its stuck vertices and their neighbours are held for the
+  // next one (the behaviour before hold-back).
+  bool hold_culprits = true;
 };
 
 // What Fix changed, so that Undo can restore the mesh exactly (vertex_edge
@@ -94,10 +102,23 @@ class KineticExecutor {
   // edges in order (for Undo) and, on failure, `stuck` the triangles left
   // invalid. vertex_edge is kept valid (after each round's flips, as
   // Mesh::UpdateVertexEdgesAfterFlip sets it in winner order).
+  //
+  // With `hold` (RoundStepPolicy::hold_culprits), a round that finds no flip
+  // for the invalid triangles left holds back their culprits instead of
+  // failing: each goes back to hold->from in *hold->to (which must be
+  // `pos`), is listed in hold->held, and the triangles whose validity reads
+  // it join the worklist. Fixing fails only when a stalled round has no
+  // moving culprit left (or the hull winds twice).
+  struct HoldBack {
+    const std::vector<Vec2>* from = nullptr;  // the mesh is Delaunay for it
+    std::vector<Vec2>* to = nullptr;          // == &pos; held entries reset
+    std::vector<uint32_t> held;               // in the order they were held
+  };
   static bool Fix(Mesh& mesh, const std::vector<Vec2>& pos,
                   std::vector<uint32_t> invalid, FlipScratch& scratch,
                   FlipCounts* counts, std::vector<uint32_t>* touched,
-                  FixLog* log, std::vector<uint32_t>* stuck);
+                  FixLog* log, std::vector<uint32_t>* stuck,
+                  HoldBack* hold = nullptr);
 
   // Reverts the flips recorded by Fix (a flip applied four times is the
   // identity, so each logged flip is undone by three more, newest first)

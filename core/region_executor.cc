@@ -253,16 +253,8 @@ void AppendStarFrom(const MeshView& m, uint32_t e0,
 // neighbours (the hull turns at its hull neighbours depend on it too).
 void AppendStarAndHullRingFrom(const MeshView& m, uint32_t e0,
                                std::vector<uint32_t>* out) {
-  const size_t begin = out->size();
-  AppendStarFrom(m, e0, out);
-  const size_t end = out->size();
-  for (size_t i = begin; i < end; ++i) {
-    const uint32_t t = (*out)[i];
-    if (!m.IsGhost(t)) continue;
-    for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
-      out->push_back(TriangleOf(m.twin[e]));
-    }
-  }
+  rules::ForEachStarAndHullRing(m, e0,
+                                [out](uint32_t t) { out->push_back(t); });
 }
 
 // The half-edges of the triangles around the origin of e0 and of the
@@ -307,11 +299,6 @@ std::optional<Vec2> Halfway(const Vec2& a, const Vec2& b) {
     return std::nullopt;
   }
   return h;
-}
-
-double Dist2(const Vec2& a, const Vec2& b) {
-  const double dx = a.x - b.x, dy = a.y - b.y;
-  return dx * dx + dy * dy;
 }
 
 // After a failed move from `from` towards *goal: the next goal is halfway
@@ -400,8 +387,8 @@ void RegionExecutor::HoldCulpritsIn(const MeshView& m, RegionSlots b,
       continue;
     }
     if (prop.edge != kNoEdge) continue;
-    // The vertices TriangleOk(t) reads, each with a half-edge leaving it
-    // (vertex_edge may be stale while fixing).
+    // The vertices TriangleOk(t) reads (rules::Culprits' candidates), each
+    // with a half-edge leaving it (vertex_edge may be stale while fixing).
     uint32_t cand[3], edge[3];
     if (m.IsGhost(t)) {
       const uint32_t s = rules::SpokeOf(m, t);
@@ -431,36 +418,19 @@ void RegionExecutor::HoldCulpritsIn(const MeshView& m, RegionSlots b,
         continue;
       }
     }
-    // Culprit: the moving vertex whose old position alone makes t valid
-    // (the one that moved farthest if several do); else all moving ones.
-    int best = -1;
-    double best_d = -1.0;
-    bool any_moving = false;
-    for (int k = 0; k < 3; ++k) {
-      const uint32_t u = cand[k];
-      if (!moving(u)) continue;
-      any_moving = true;
-      const Vec2 saved = (*cur_)[u];
-      (*cur_)[u] = from[u];
-      const bool ok = rules::TriangleOk(m, p, t);
-      (*cur_)[u] = saved;
-      const double d = Dist2(saved, from[u]);
-      if (ok && d > best_d) {
-        best = k;
-        best_d = d;
-      }
-    }
-    if (!any_moving) continue;
-    for (int k = 0; k < 3; ++k) {
-      const uint32_t u = cand[k];
-      if (best >= 0 && k != best) continue;
-      if (!moving(u)) continue;
-      Hold(u, edge[k], holds);
+    uint32_t culprit[3], culprit_edge[3];
+    const int num_culprits =
+        rules::Culprits(m, p, from.data(), t, moving, culprit, culprit_edge);
+    for (int c = 0; c < num_culprits; ++c) {
+      const uint32_t u = culprit[c];
+      Hold(u, culprit_edge[c], holds);
       around.clear();
       if (kBounded) {
-        around = rings[k];
+        for (int k = 0; k < 3; ++k) {
+          if (edge[k] == culprit_edge[c]) around = rings[k];
+        }
       } else {
-        AppendStarAndHullRingFrom(m, edge[k], &around);
+        AppendStarAndHullRingFrom(m, culprit_edge[c], &around);
       }
       for (uint32_t x : around) {
         if (!rules::TriangleOk(m, p, x)) queue.push_back(x);

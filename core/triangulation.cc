@@ -584,19 +584,33 @@ void Triangulation::Renumber() {
   baseline_span_ = MeanEdgeSpan();
 }
 
+void Triangulation::KeepHeldBack(const std::vector<uint32_t>& held,
+                                 std::vector<Vec2>& to,
+                                 std::vector<uint32_t>* out) const {
+  for (uint32_t v : held) {
+    for (uint32_t p = v; p != kNoVertex; p = dup_next_[p]) to[p] = pos_[p];
+    out->push_back(v);
+  }
+}
+
 absl::Status Triangulation::AttemptOnDevice(
-    const std::vector<Vec2>& to, const std::vector<uint32_t>* moved,
+    std::vector<Vec2>& to, const std::vector<uint32_t>* moved,
     const std::vector<uint32_t>* seeds, const CancelToken* cancel,
-    StepReport* report, std::vector<uint32_t>* stuck_vertices, int* result) {
+    StepReport* report, std::vector<uint32_t>* stuck_vertices,
+    std::vector<uint32_t>* held, int* result) {
   motion_filter_.Invalidate();
   std::vector<uint32_t> candidates;
   if (moved != nullptr) {
     candidates = KineticExecutor::CandidateTriangles(mesh_, *moved);
   }
   absl::StatusOr<device::DeviceAttempt> a =
-      device_->Attempt(mesh_, to, moved != nullptr ? &candidates : nullptr,
-                       seeds, options_.round.rebuild_fraction, cancel);
+      device_->Attempt(mesh_, to,
+                       options_.round.hold_culprits ? absl::MakeConstSpan(pos_)
+                                                    : absl::Span<const Vec2>(),
+                       moved != nullptr ? &candidates : nullptr, seeds,
+                       options_.round.rebuild_fraction, cancel);
   if (!a.ok()) return a.status();
+  KeepHeldBack(a->held, to, held);
   report->fix_seconds += a->fix_seconds;
   report->legalize_seconds += a->legalize_seconds;
   report->transfer_seconds += a->transfer_seconds;
@@ -621,15 +635,16 @@ absl::Status Triangulation::AttemptOnDevice(
   return absl::OkStatus();
 }
 
-bool Triangulation::TryStep(const std::vector<Vec2>& to,
+bool Triangulation::TryStep(std::vector<Vec2>& to,
                             const std::vector<uint32_t>* moved,
                             const std::vector<uint32_t>* seeds, int depth,
                             const CancelToken* cancel, StepReport* report,
-                            std::vector<uint32_t>* stuck_vertices) {
+                            std::vector<uint32_t>* stuck_vertices,
+                            std::vector<uint32_t>* held) {
   if (device_ != nullptr) {
     int result = 0;
     const absl::Status st = AttemptOnDevice(to, moved, seeds, cancel, report,
-                                            stuck_vertices, &result);
+                                            stuck_vertices, held, &result);
     if (!st.ok()) device_failure_ = std::string(st.message());
     if (!st.ok() || result == -2) {
       too_tangled_ = true;  // device error or tangled: rebuild on the host
@@ -651,7 +666,8 @@ bool Triangulation::TryStep(const std::vector<Vec2>& to,
     }
     ++report->failed_attempts;
     if (depth >= options_.round.max_subdivision_depth) return false;
-    return SplitStep(to, moved, seeds, depth, cancel, report, stuck_vertices);
+    return SplitStep(to, moved, seeds, depth, cancel, report, stuck_vertices,
+                     held);
   }
   auto t0 = std::chrono::steady_clock::now();
   std::vector<uint32_t> invalid =
@@ -666,8 +682,11 @@ bool Triangulation::TryStep(const std::vector<Vec2>& to,
     too_tangled_ = true;
     return false;
   }
+  KineticExecutor::HoldBack hold{&pos_, &to, {}};
   const bool fixed = KineticExecutor::Fix(
-      mesh_, to, std::move(invalid), scratch_, &counts, &touched, &log, &stuck);
+      mesh_, to, std::move(invalid), scratch_, &counts, &touched, &log, &stuck,
+      options_.round.hold_culprits ? &hold : nullptr);
+  KeepHeldBack(hold.held, to, held);
   report->fix_seconds += SecondsSince(t0);
   t0 = std::chrono::steady_clock::now();
   if (fixed) {
@@ -707,14 +726,16 @@ bool Triangulation::TryStep(const std::vector<Vec2>& to,
   KineticExecutor::Undo(mesh_, log);
   report->fix_seconds += SecondsSince(t0);
   if (depth >= options_.round.max_subdivision_depth) return false;
-  return SplitStep(to, moved, seeds, depth, cancel, report, stuck_vertices);
+  return SplitStep(to, moved, seeds, depth, cancel, report, stuck_vertices,
+                   held);
 }
 
-bool Triangulation::SplitStep(const std::vector<Vec2>& to,
+bool Triangulation::SplitStep(std::vector<Vec2>& to,
                               const std::vector<uint32_t>* moved,
                               const std::vector<uint32_t>* seeds, int depth,
                               const CancelToken* cancel, StepReport* report,
-                              std::vector<uint32_t>* stuck_vertices) {
+                              std::vector<uint32_t>* stuck_vertices,
+                              std::vector<uint32_t>* held) {
   // Move halfway, then the rest.
   std::vector<Vec2> mid = pos_;
   auto halfway = [&](size_t i) {
@@ -728,19 +749,25 @@ bool Triangulation::SplitStep(const std::vector<Vec2>& to,
       if (rep_[i] != i) mid[i] = mid[rep_[i]];
     }
   }
+  // Each half's seeds: the stars of the moved vertices now, plus the
+  // caller's seeds (the holes of vertices removed before the step, which
+  // the stars do not cover; flips keep triangle ids).
   std::vector<uint32_t> seeds_now;
-  if (seeds != nullptr) {
+  auto seed = [&] {
     seeds_now = KineticExecutor::TrianglesAround(mesh_, *moved);
-  }
+    seeds_now.insert(seeds_now.end(), seeds->begin(), seeds->end());
+    std::sort(seeds_now.begin(), seeds_now.end());
+    seeds_now.erase(std::unique(seeds_now.begin(), seeds_now.end()),
+                    seeds_now.end());
+  };
+  if (seeds != nullptr) seed();
   if (!TryStep(mid, moved, seeds ? &seeds_now : nullptr, depth + 1, cancel,
-               report, stuck_vertices)) {
+               report, stuck_vertices, held)) {
     return false;
   }
-  if (seeds != nullptr) {
-    seeds_now = KineticExecutor::TrianglesAround(mesh_, *moved);
-  }
+  if (seeds != nullptr) seed();
   return TryStep(to, moved, seeds ? &seeds_now : nullptr, depth + 1, cancel,
-                 report, stuck_vertices);
+                 report, stuck_vertices, held);
 }
 
 bool Triangulation::InsertBatch(std::vector<uint32_t> pending,
@@ -865,11 +892,39 @@ bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
   // Vertices whose motion stuck a dense pass: when they resume, they first
   // take half of their remaining motion (they would stick again otherwise).
   std::vector<uint8_t> halve_on_resume(n, 0);
+  // How often fixing held each vertex back in this step (hold_culprits).
+  std::vector<uint8_t> held_in_fix_count(n, 0);
   const auto& ve = mesh_.vertex_edge();
   std::vector<Vec2> goal = next;
   std::vector<uint32_t> active = moved_points;  // candidates still to move
   auto set_goal = [&](uint32_t v, const Vec2& g) {
     for (uint32_t p = v; p != kNoVertex; p = dup_next_[p]) goal[p] = g;
+  };
+  // Removes vertices (sorted, unique) for re-insertion at the end of the
+  // step, within the re-insertion budget; false (with *reason) when it is
+  // exceeded or a removal fails.
+  auto remove_for_reinsertion = [&](const std::vector<uint32_t>& to_remove) {
+    if (removed.size() + to_remove.size() > max_removed ||
+        sites_.size() <
+            removed.size() + to_remove.size() + policy.min_sites_left) {
+      *reason =
+          absl::StrCat("fixing stuck; ", removed.size() + to_remove.size(),
+                       " vertices to re-insert exceed the local budget");
+      return false;
+    }
+    const auto t_remove = std::chrono::steady_clock::now();
+    for (uint32_t v : to_remove) {
+      if (ve[v] == kNoEdge) continue;
+      hints[v] = mesh_.view().Dest(ve[v]);
+      MeshChangedOnHost();
+      if (!VertexOps::Remove(mesh_, pos_, v, &removal_touched_, nullptr)) {
+        *reason = "could not remove a vertex for re-insertion";
+        return false;
+      }
+      removed.push_back(v);
+    }
+    report->reinsert_seconds += SecondsSince(t_remove);
+    return true;
   };
   for (int attempt = 0;; ++attempt) {
     if (cancel != nullptr && cancel->Cancelled()) {
@@ -890,11 +945,24 @@ bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
       seeds.insert(seeds.end(), removal_touched_.begin(),
                    removal_touched_.end());
     }
-    std::vector<uint32_t> stuck;
+    std::vector<uint32_t> stuck, held_in_fix;
     too_tangled_ = false;
     const bool passed =
         TryStep(goal, sparse ? &moved : nullptr, sparse ? &seeds : nullptr, 0,
-                cancel, report, &stuck);
+                cancel, report, &stuck, &held_in_fix);
+    report->held_vertices += static_cast<uint32_t>(held_in_fix.size());
+    // Vertices fixing held back (hold_culprits), whether or not the attempt
+    // passed, take half of their remaining motion when they resume (a
+    // vertex held k times: 1 / 2^k of it).
+    std::vector<uint32_t> held_exhausted;
+    for (uint32_t v : held_in_fix) {
+      if (level[v] >= kMaxHalvings) {
+        held_exhausted.push_back(v);
+      } else {
+        halve_on_resume[v] = 1;
+        if (held_in_fix_count[v] < 255) ++held_in_fix_count[v];
+      }
+    }
     if (cancel != nullptr && cancel->Cancelled()) {
       // A device attempt stopped by the token leaves the host mesh as it
       // was; on the first attempt nothing has changed at all.
@@ -920,8 +988,18 @@ bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
                              " passes: rebuilding is cheaper");
       return false;
     }
+    // (A pass legalized the holes of earlier removals.)
+    if (passed) removal_touched_.clear();
+    // A vertex fixing held back after its motion was halved too often is
+    // removed and re-inserted (the mesh is valid for pos_ either way).
+    if (!held_exhausted.empty()) {
+      std::sort(held_exhausted.begin(), held_exhausted.end());
+      held_exhausted.erase(
+          std::unique(held_exhausted.begin(), held_exhausted.end()),
+          held_exhausted.end());
+      if (!remove_for_reinsertion(held_exhausted)) return false;
+    }
     if (passed) {
-      removal_touched_.clear();
       // Held-back vertices now finish their motion.
       std::vector<uint32_t> held;
       for (uint32_t v : active) {
@@ -929,11 +1007,19 @@ bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
           held.push_back(v);
         }
       }
-      if (held.empty()) break;
+      // (A removal above leaves its hole to be legalized by one more pass.)
+      if (held.empty() && removal_touched_.empty()) break;
       for (uint32_t v : held) {
         if (halve_on_resume[v] && level[v] < kMaxHalvings) {
           halve_on_resume[v] = 0;
-          if (const auto h = HalfwayGoal(pos_[v], next[v])) {
+          // Half of the remaining motion; a vertex fixing held back k times
+          // takes 1 / 2^k of it (it was held at each larger part).
+          std::optional<Vec2> h = next[v];
+          for (int k = 0; h && k < std::max(1, int{held_in_fix_count[v]});
+               ++k) {
+            h = HalfwayGoal(pos_[v], *h);
+          }
+          if (h) {
             set_goal(v, *h);
             ++level[v];
             continue;
@@ -1026,27 +1112,9 @@ bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
     to_remove.erase(std::unique(to_remove.begin(), to_remove.end()),
                     to_remove.end());
     ++report->local_halvings;
-    if (removed.size() + to_remove.size() > max_removed ||
-        sites_.size() <
-            removed.size() + to_remove.size() + policy.min_sites_left) {
-      *reason =
-          absl::StrCat("fixing stuck; ", removed.size() + to_remove.size(),
-                       " vertices to re-insert exceed the local budget");
-      return false;
-    }
-    const auto t_remove = std::chrono::steady_clock::now();
-    for (uint32_t v : to_remove) {
-      if (ve[v] == kNoEdge) continue;
-      hints[v] = mesh_.view().Dest(ve[v]);
-      MeshChangedOnHost();
-      if (!VertexOps::Remove(mesh_, pos_, v, &removal_touched_, nullptr)) {
-        *reason = "could not remove a vertex for re-insertion";
-        return false;
-      }
-      removed.push_back(v);
-      progress = true;
-    }
-    report->reinsert_seconds += SecondsSince(t_remove);
+    const size_t removed_before = removed.size();
+    if (!remove_for_reinsertion(to_remove)) return false;
+    progress |= removed.size() > removed_before;
     if (!progress) {
       *reason = "fixing stuck and no vertex left to hold back or remove";
       return false;

@@ -126,8 +126,11 @@ struct StepReport {
   uint32_t failed_attempts = 0;  // fixing attempts that got stuck
   uint32_t reinserted = 0;       // vertices removed and inserted again locally
   uint32_t local_halvings = 0;   // rounds that halved stuck vertices' motion
-  uint32_t held_vertices = 0;    // region executor: vertices moved alone
-  uint32_t deferred = 0;         // region executor: boundary elements
+  // Vertices held back by fixing (the region executor moves them alone;
+  // the round and device executors in later passes, RoundStepPolicy::
+  // hold_culprits).
+  uint32_t held_vertices = 0;
+  uint32_t deferred = 0;  // region executor: boundary elements
   // Region executor with vertex tolerances (core/motion_filter.h): moved
   // points that stayed within theirs and were not looked at.
   uint32_t quiet_points = 0;
@@ -285,24 +288,33 @@ class Triangulation {
   // Local update attempt from pos_ to `to`; false if it must fall back.
   // On failure the mesh is back to a valid state for pos_ and
   // stuck_vertices lists vertices of the triangles that could not be fixed.
-  bool TryStep(const std::vector<Vec2>& to, const std::vector<uint32_t>* moved,
+  // Vertices that fixing held back (RoundStepPolicy::hold_culprits) get
+  // their old positions in `to` (their whole site) and are appended to
+  // *held, whether or not the attempt passed.
+  bool TryStep(std::vector<Vec2>& to, const std::vector<uint32_t>* moved,
                const std::vector<uint32_t>* seeds, int depth,
                const CancelToken* cancel, StepReport* report,
-               std::vector<uint32_t>* stuck_vertices);
+               std::vector<uint32_t>* stuck_vertices,
+               std::vector<uint32_t>* held);
   // TryStep's second half: the step split in two halves (depth + 1).
-  bool SplitStep(const std::vector<Vec2>& to,
-                 const std::vector<uint32_t>* moved,
+  bool SplitStep(std::vector<Vec2>& to, const std::vector<uint32_t>* moved,
                  const std::vector<uint32_t>* seeds, int depth,
                  const CancelToken* cancel, StepReport* report,
-                 std::vector<uint32_t>* stuck_vertices);
+                 std::vector<uint32_t>* stuck_vertices,
+                 std::vector<uint32_t>* held);
   // TryStep's attempt on the device executor: *result 1 fixed, 0 stuck
-  // (stuck_vertices filled), -1 cancelled, -2 too tangled (rebuild).
-  absl::Status AttemptOnDevice(const std::vector<Vec2>& to,
+  // (stuck_vertices filled), -1 cancelled, -2 too tangled (rebuild); held
+  // as TryStep's.
+  absl::Status AttemptOnDevice(std::vector<Vec2>& to,
                                const std::vector<uint32_t>* moved,
                                const std::vector<uint32_t>* seeds,
                                const CancelToken* cancel, StepReport* report,
                                std::vector<uint32_t>* stuck_vertices,
-                               int* result);
+                               std::vector<uint32_t>* held, int* result);
+  // The vertices fixing held back go back to pos_ in `to`, with their
+  // coincident points, and are appended to *out.
+  void KeepHeldBack(const std::vector<uint32_t>& held, std::vector<Vec2>& to,
+                    std::vector<uint32_t>* out) const;
   // The host changed mesh_ (the device copy must be uploaded again).
   void MeshChangedOnHost();
   // Coincident points whose positions in `next` leave their site: detached

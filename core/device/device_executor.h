@@ -53,6 +53,10 @@ struct DeviceAttempt {
   // When not fixed: the corners of the triangles that fixing could not
   // repair, three per triangle (kNoVertex for the infinite vertex).
   std::vector<uint32_t> stuck_corners;
+  // Hold-back (Attempt with `from`): the vertices fixing held back at their
+  // old positions, in the order the host's round executor holds them
+  // (KineticExecutor::Fix). Filled whether or not the attempt fixed.
+  std::vector<uint32_t> held;
   double fix_seconds = 0.0;
   double legalize_seconds = 0.0;
   double transfer_seconds = 0.0;  // uploads and downloads
@@ -159,8 +163,16 @@ class DeviceExecutor {
   // is untouched (it is still valid for the old positions). A dense attempt
   // with more than `rebuild_fraction` of the triangles inverted stops at
   // once (tangled). `cancel` is polled every round.
+  //
+  // `from` (empty, or the positions `mesh` is Delaunay for): a fixing round
+  // that finds no flip holds back the culprits of the triangles left
+  // (rules::Culprits) at their `from` positions and fixing goes on, as the
+  // host's round executor does with KineticExecutor::HoldBack; the held
+  // vertices come back in DeviceAttempt::held (the mesh is then Delaunay for
+  // `to` with those entries replaced by `from`'s). Empty: the attempt ends
+  // stuck there.
   virtual absl::StatusOr<DeviceAttempt> Attempt(
-      Mesh& mesh, absl::Span<const Vec2> to,
+      Mesh& mesh, absl::Span<const Vec2> to, absl::Span<const Vec2> from,
       const std::vector<uint32_t>* candidates,
       const std::vector<uint32_t>* seeds, double rebuild_fraction,
       const CancelToken* cancel) = 0;
@@ -193,7 +205,7 @@ class DeviceExecutor {
   // It keeps one mesh on the device (the one its last attempt left): to
   // step another mesh with it, call Invalidate() first.
   virtual std::future<absl::StatusOr<DeviceAttempt>> AttemptAsync(
-      Mesh& mesh, absl::Span<const Vec2> to,
+      Mesh& mesh, absl::Span<const Vec2> to, absl::Span<const Vec2> from,
       const std::vector<uint32_t>* candidates,
       const std::vector<uint32_t>* seeds, double rebuild_fraction,
       const CancelToken* cancel, DeviceStream stream) = 0;

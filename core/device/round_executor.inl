@@ -459,6 +459,85 @@ struct Corners {
   }
 };
 
+// Hold-back, core/kinetic.cc's HoldCulprits step for step: the culprits of
+// stalled triangle bad[i] (rules::Culprits) as keys vertex << 32 | a
+// half-edge leaving it; kNoCulprit where there are fewer than three.
+constexpr uint64_t kNoCulprit = ~uint64_t{0};
+struct MovedSince {
+  const Vec2* pos;
+  const Vec2* from;
+  KINETRI_HD bool operator()(uint32_t u) const { return pos[u] != from[u]; }
+};
+struct FindCulprits {
+  MeshView m;
+  const Vec2* pos;
+  const Vec2* from;
+  const uint32_t* bad;
+  uint64_t* keys;
+  KINETRI_HD void operator()(uint32_t i) const {
+    uint32_t v[3], e[3];
+    const int n =
+        rules::Culprits(m, pos, from, bad[i], MovedSince{pos, from}, v, e);
+    for (int k = 0; k < 3; ++k) {
+      keys[3 * i + k] =
+          k < n ? (uint64_t{v[k]} << 32) | uint64_t{e[k]} : kNoCulprit;
+    }
+  }
+};
+struct IsNoCulprit {
+  KINETRI_HD bool operator()(uint64_t key) const { return key == kNoCulprit; }
+};
+struct SameCulprit {
+  KINETRI_HD bool operator()(uint64_t a, uint64_t b) const {
+    return (a >> 32) == (b >> 32);
+  }
+};
+// Culprit i goes back to its old position and is listed in held.
+struct HoldCulprit {
+  const uint64_t* keys;
+  Vec2* pos;
+  const Vec2* from;
+  uint32_t* held;
+  KINETRI_HD void operator()(uint32_t i) const {
+    const uint32_t v = static_cast<uint32_t>(keys[i] >> 32);
+    pos[v] = from[v];
+    held[i] = v;
+  }
+};
+// The triangles whose validity reads culprit i (rules::
+// ForEachStarAndHullRing): how many, then written from offset[i].
+struct CulpritStarSize {
+  MeshView m;
+  const uint64_t* keys;
+  uint32_t num_keys;  // size[num_keys] = 0
+  uint32_t* size;
+  KINETRI_HD void operator()(uint32_t i) const {
+    uint32_t n = 0;
+    if (i == num_keys) {
+      size[i] = 0;
+      return;
+    }
+    rules::ForEachStarAndHullRing(m, static_cast<uint32_t>(keys[i]),
+                                  [&n](uint32_t) { ++n; });
+    size[i] = n;
+  }
+};
+struct WriteCulpritStar {
+  MeshView m;
+  const uint64_t* keys;
+  const uint32_t* offset;
+  uint32_t* out;
+  KINETRI_HD void operator()(uint32_t i) const {
+    uint32_t* at = out + offset[i];
+    rules::ForEachStarAndHullRing(m, static_cast<uint32_t>(keys[i]),
+                                  [&at](uint32_t t) { *at++ = t; });
+  }
+};
+static_assert(std::is_trivially_copyable_v<FindCulprits>);
+static_assert(std::is_trivially_copyable_v<HoldCulprit>);
+static_assert(std::is_trivially_copyable_v<CulpritStarSize>);
+static_assert(std::is_trivially_copyable_v<WriteCulpritStar>);
+
 // vertex_edge after a round's flips, exactly as the host sets it
 // (Mesh::UpdateVertexEdgesAfterFlip for each winner in ascending edge
 // order): a quad corner gets the half-edge of the last winner that touches
@@ -851,16 +930,17 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   }
 
   absl::StatusOr<DeviceAttempt> Attempt(Mesh& mesh, absl::Span<const Vec2> to,
+                                        absl::Span<const Vec2> from,
                                         const std::vector<uint32_t>* candidates,
                                         const std::vector<uint32_t>* seeds,
                                         double rebuild_fraction,
                                         const CancelToken* cancel) override {
-    return AttemptAfter(CallerMark(nullptr), mesh, to, candidates, seeds,
+    return AttemptAfter(CallerMark(nullptr), mesh, to, from, candidates, seeds,
                         rebuild_fraction, cancel);
   }
 
   std::future<absl::StatusOr<DeviceAttempt>> AttemptAsync(
-      Mesh& mesh, absl::Span<const Vec2> to,
+      Mesh& mesh, absl::Span<const Vec2> to, absl::Span<const Vec2> from,
       const std::vector<uint32_t>* candidates,
       const std::vector<uint32_t>* seeds, double rebuild_fraction,
       const CancelToken* cancel, DeviceStream stream) override {
@@ -868,7 +948,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       // Recorded now, on the caller's thread: the caller's work so far.
       auto mark = std::make_shared<CallerMark>(stream.cuda_stream);
       return std::async(std::launch::async, [=, this, &mesh] {
-        return AttemptAfter(*mark, mesh, to, candidates, seeds,
+        return AttemptAfter(*mark, mesh, to, from, candidates, seeds,
                             rebuild_fraction, cancel);
       });
     } catch (const std::exception& e) {  // no event, or no thread
@@ -914,14 +994,14 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   // is as it was.
   absl::StatusOr<DeviceAttempt> AttemptAfter(
       const CallerMark& mark, Mesh& mesh, absl::Span<const Vec2> to,
-      const std::vector<uint32_t>* candidates,
+      absl::Span<const Vec2> from, const std::vector<uint32_t>* candidates,
       const std::vector<uint32_t>* seeds, double rebuild_fraction,
       const CancelToken* cancel) {
     std::lock_guard<std::mutex> lock(attempt_mu_);
     try {
       UseDevice(device_);  // (an async form's thread starts on GPU 0)
       mark.Follow(stream_);
-      return AttemptLocked(mesh, to, candidates, seeds, rebuild_fraction,
+      return AttemptLocked(mesh, to, from, candidates, seeds, rebuild_fraction,
                            cancel);
     } catch (const std::bad_alloc&) {
       ForgetDeviceState();
@@ -941,21 +1021,23 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     clock_.Stop();
     host_changed_ = true;
     working_is_base_ = false;
-    for (U32Vector* v : {&tri_claim_, &vert_claim_, &last_, &queued_}) {
+    from_ready_ = false;
+    for (U32Vector* v : {&tri_claim_, &vert_claim_, &last_, &queued_, &held_}) {
       v->clear();
     }
     known_.clear();
   }
 
   DeviceAttempt AttemptLocked(Mesh& mesh, absl::Span<const Vec2> to,
+                              absl::Span<const Vec2> from,
                               const std::vector<uint32_t>* candidates,
                               const std::vector<uint32_t>* seeds,
                               double rebuild_fraction,
                               const CancelToken* cancel) {
     const uint64_t calls = calls_, waits = waits_;
     clock_.Mark(0);  // line 0: the attempt's start up to its first algorithm
-    DeviceAttempt out =
-        AttemptOnDevice(mesh, to, candidates, seeds, rebuild_fraction, cancel);
+    DeviceAttempt out = AttemptOnDevice(mesh, to, from, candidates, seeds,
+                                        rebuild_fraction, cancel);
     // Whatever the attempt launched last has finished (a stopped attempt
     // may end on calls the host did not wait for).
     Drain(stream_);
@@ -996,6 +1078,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   }
 
   DeviceAttempt AttemptOnDevice(Mesh& mesh, absl::Span<const Vec2> to,
+                                absl::Span<const Vec2> from,
                                 const std::vector<uint32_t>* candidates,
                                 const std::vector<uint32_t>* seeds,
                                 double rebuild_fraction,
@@ -1039,6 +1122,9 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     }
     Upload(to, pos_);
     out.bytes_uploaded += sizeof(Vec2) * to.size();
+    from_host_ = from.size() == to.size() ? from : absl::Span<const Vec2>();
+    from_ready_ = false;
+    held_.clear();
     if (tri_claim_.size() != nt) tri_claim_.assign(nt, kNoEdge);
     if (vert_claim_.size() != nv) vert_claim_.assign(nv, kNoEdge);
     if (last_.size() != nv) last_.assign(nv, 0);
@@ -1078,6 +1164,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       out.cancelled = true;
       return out;
     }
+    DownloadHeld(&out);
     if (fixed == 0) return out;
 
     t0 = std::chrono::steady_clock::now();
@@ -1232,6 +1319,9 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       props_.erase(thr::remove_if(P(), props_.begin(), props_.end(), NoFlip{}),
                    props_.end());
       if (props_.empty()) {
+        // Stalled: hold the culprits back and go on around them (when the
+        // caller gave the old positions), else stuck.
+        if (HoldCulprits(m, out)) continue;
         Stuck(m, bad_, out);
         return 0;
       }
@@ -1485,6 +1575,64 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     return static_cast<uint32_t>(winners_.size());
   }
 
+  // One hold-back (core/kinetic.cc's HoldCulprits, step for step): the
+  // culprits of bad_ (a vertex once, with its smallest half-edge found) go
+  // back to their old positions and are appended to held_; work_ becomes
+  // bad_ plus every triangle whose validity reads a held vertex. False when
+  // no old positions were given or no stalled triangle has a culprit. The
+  // old positions are uploaded at the attempt's first hold-back.
+  bool HoldCulprits(const MeshView& m, DeviceAttempt* out) {
+    if (from_host_.empty()) return false;
+    if (!from_ready_) {
+      const auto t0 = std::chrono::steady_clock::now();
+      Upload(from_host_, from_);
+      out->bytes_uploaded += sizeof(Vec2) * from_host_.size();
+      out->transfer_seconds += Since(t0);
+      from_ready_ = true;
+    }
+    const uint32_t nb = static_cast<uint32_t>(bad_.size());
+    culprit_keys_.resize(3ull * nb);
+    thr::for_each(
+        A(), Count(0), Count(nb),
+        FindCulprits{m, Raw(pos_), Raw(from_), Raw(bad_), Raw(culprit_keys_)});
+    culprit_keys_.erase(thr::remove_if(P(), culprit_keys_.begin(),
+                                       culprit_keys_.end(), IsNoCulprit{}),
+                        culprit_keys_.end());
+    thr::sort(A(), culprit_keys_.begin(), culprit_keys_.end());
+    culprit_keys_.erase(thr::unique(P(), culprit_keys_.begin(),
+                                    culprit_keys_.end(), SameCulprit{}),
+                        culprit_keys_.end());
+    const uint32_t nh = static_cast<uint32_t>(culprit_keys_.size());
+    if (nh == 0) return false;
+    const size_t held_before = held_.size();
+    held_.resize(held_before + nh);
+    thr::for_each(A(), Count(0), Count(nh),
+                  HoldCulprit{Raw(culprit_keys_), Raw(pos_), Raw(from_),
+                              Raw(held_) + held_before});
+    edges_.resize(nh + 1);  // star sizes (0 last), then their offsets
+    thr::for_each(A(), Count(0), Count(nh + 1),
+                  CulpritStarSize{m, Raw(culprit_keys_), nh, Raw(edges_)});
+    thr::exclusive_scan(A(), edges_.begin(), edges_.end(), edges_.begin());
+    uint32_t stars = 0;
+    (void)P();  // the total's download waits for the scan
+    staging_.ToHost(Raw(edges_) + nh, 1, &stars, stream_);
+    next_.resize(size_t{nb} + stars);
+    thr::copy(A(), bad_.begin(), bad_.end(), next_.begin());
+    thr::for_each(
+        A(), Count(0), Count(nh),
+        WriteCulpritStar{m, Raw(culprit_keys_), Raw(edges_), Raw(next_) + nb});
+    SortUnique(next_);
+    work_.swap(next_);
+    return true;
+  }
+
+  // The vertices the attempt held back (DeviceAttempt::held).
+  void DownloadHeld(DeviceAttempt* out) {
+    if (held_.empty()) return;
+    Download(held_, &out->held);
+    out->bytes_downloaded += 4ull * held_.size();
+  }
+
   void Stuck(const MeshView& m, U32Vector& triangles, DeviceAttempt* out) {
     const uint32_t n = static_cast<uint32_t>(triangles.size());
     next_.resize(3ull * n);
@@ -1510,6 +1658,13 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   U32Vector origin_, twin_, vertex_edge_;
   U32Vector last_;  // per vertex: last winner touching it (0 between rounds)
   thr::device_vector<Vec2> pos_;
+  // Hold-back (HoldCulprits): the attempt's old positions on the host, and
+  // on the device once a round stalls; the vertices held so far; scratch.
+  absl::Span<const Vec2> from_host_;
+  bool from_ready_ = false;
+  thr::device_vector<Vec2> from_;
+  U32Vector held_;
+  thr::device_vector<uint64_t> culprit_keys_;
   // A successful attempt's changes on their way down (AppendChanges).
   U32Vector patch_count_, patch_index_, patch_value_;
   std::vector<uint32_t> host_patch_index_, host_patch_value_;

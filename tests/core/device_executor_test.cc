@@ -83,6 +83,7 @@ TEST(DeviceExecutor, EqualsTheRoundExecutorHalfEdgeForHalfEdge) {
       {"clustered", testing::ClusteredPoints(3000, 3), 0.3},
       {"duplicates", testing::WithDuplicates(1500, 3, 4), 0.2},
   };
+  uint64_t held = 0;
   for (const Case& c : cases) {
     TriangulationOptions rounds_opt;
     rounds_opt.executor = Executor::kRounds;
@@ -107,6 +108,9 @@ TEST(DeviceExecutor, EqualsTheRoundExecutorHalfEdgeForHalfEdge) {
       EXPECT_EQ(rr->flips.fix_rounds, rd->flips.fix_rounds) << where;
       EXPECT_EQ(rr->flips.legalize_rounds, rd->flips.legalize_rounds) << where;
       EXPECT_EQ(rr->failed_attempts, rd->failed_attempts) << where;
+      // The same vertices held back inside fixing (hold_culprits).
+      EXPECT_EQ(rr->held_vertices, rd->held_vertices) << where;
+      held += rd->held_vertices;
       EXPECT_EQ(rd->device_resyncs, 0u) << where;
       ExpectSameMesh(*rounds, *dev, where);
       ASSERT_TRUE(dev->Validate().ok()) << where << dev->Validate();
@@ -115,6 +119,7 @@ TEST(DeviceExecutor, EqualsTheRoundExecutorHalfEdgeForHalfEdge) {
           << where;
     }
   }
+  EXPECT_GT(held, 0u);  // the hold-back ran, on both
 }
 
 // The host waits for the device only where it reads a result: twice per
@@ -172,13 +177,19 @@ TEST(DeviceExecutor, DeviceLoopsLeaveTheMeshAsTheHostRoundsDo) {
   };
   const size_t n = 3000;
   const auto pts = testing::UniformPoints(n, 61);
+  // Without hold-back inside fixing (RoundStepPolicy::hold_culprits): with
+  // it, no legalizing worklist of these steps outgrows the small capacity
+  // below, and handing a loop back is what that setting tests.
   TriangulationOptions rounds_opt;
   rounds_opt.executor = Executor::kRounds;
+  rounds_opt.round.hold_culprits = false;
   auto rounds = Triangulation::Create(pts, rounds_opt);
   ASSERT_TRUE(rounds.ok());
   std::vector<Triangulation> devs;
   for (const Setting& s : settings) {
-    auto t = Triangulation::Create(pts, DeviceOptions());
+    TriangulationOptions device_opt = DeviceOptions();
+    device_opt.round.hold_culprits = false;
+    auto t = Triangulation::Create(pts, device_opt);
     ASSERT_TRUE(t.ok()) << t.status();
     t->device_executor()->set_loop_control(s.control);
     EXPECT_EQ(t->device_executor()->loop_control().capacity,
@@ -335,9 +346,9 @@ std::optional<device::DeviceAttempt> AgainAsAFreshExecutor(
     ADD_FAILURE() << where << ": " << fresh.status();
     return std::nullopt;
   }
-  auto again = a.Attempt(m, to, nullptr, nullptr, 0.5, nullptr);
+  auto again = a.Attempt(m, to, {}, nullptr, nullptr, 0.5, nullptr);
   auto other =
-      (*fresh)->Attempt(fresh_mesh, to, nullptr, nullptr, 0.5, nullptr);
+      (*fresh)->Attempt(fresh_mesh, to, {}, nullptr, nullptr, 0.5, nullptr);
   if (!again.ok() || !other.ok()) {
     ADD_FAILURE() << where << ": " << again.status() << other.status();
     return std::nullopt;
@@ -375,7 +386,7 @@ TEST(DeviceExecutor, AttemptStoppedInsideADeviceLoopLeavesNoMark) {
     CancelToken cancel([&] { return polls.fetch_add(1) >= k; },
                        CancelToken::Clock::time_point::max(),
                        CancelToken::Clock::duration::zero());
-    auto r = (*a)->Attempt(m, to, nullptr, nullptr, 0.5, &cancel);
+    auto r = (*a)->Attempt(m, to, {}, nullptr, nullptr, 0.5, &cancel);
     ASSERT_TRUE(r.ok()) << r.status();
     if (!r->cancelled) continue;  // fixed, or stuck before any poll fired
     stopped_in_loop += r->loop_rounds > 0 ? 1 : 0;
@@ -418,7 +429,7 @@ TEST(DeviceExecutor, AFailedDeviceCallLeavesTheMeshAsItWas) {
     Mesh m = BuildDelaunayWithCgal(pts, sites);
     auto probe = device::MakeDeviceExecutor(kBackend);
     ASSERT_TRUE(probe.ok());
-    auto r = (*probe)->Attempt(m, moved(), nullptr, nullptr, 0.5, nullptr);
+    auto r = (*probe)->Attempt(m, moved(), {}, nullptr, nullptr, 0.5, nullptr);
     ASSERT_TRUE(r.ok()) << r.status();
     calls = r->device_calls;
   }
@@ -437,7 +448,7 @@ TEST(DeviceExecutor, AFailedDeviceCallLeavesTheMeshAsItWas) {
       const std::vector<uint32_t> origin = m.origin(), twin = m.twin(),
                                   vertex_edge = m.vertex_edge();
       (*a)->InjectFault({kind, static_cast<uint64_t>(at * double(calls))});
-      auto r = (*a)->Attempt(m, to, nullptr, nullptr, 0.5, nullptr);
+      auto r = (*a)->Attempt(m, to, {}, nullptr, nullptr, 0.5, nullptr);
       if ((*a)->fault_armed()) {  // the attempt made fewer calls
         (*a)->InjectFault({});
         ASSERT_TRUE(r.ok()) << where << ": " << r.status();
@@ -482,7 +493,7 @@ TEST(DeviceExecutor, AMeshChangedBehindItsBackIsUploadedAgain) {
   ASSERT_TRUE(a.ok());
   // The points stay where they are: each round's host change is one flip
   // to the other diagonal of a convex quad, which legalizing flips back.
-  auto r = (*a)->Attempt(m, pts, nullptr, nullptr, 0.5, nullptr);
+  auto r = (*a)->Attempt(m, pts, {}, nullptr, nullptr, 0.5, nullptr);
   ASSERT_TRUE(r.ok() && r->fixed) << r.status();
   EXPECT_EQ(r->resyncs, 0u);
   uint32_t from = 0;
@@ -515,7 +526,7 @@ TEST(DeviceExecutor, AMeshChangedBehindItsBackIsUploadedAgain) {
     EXPECT_GE(again->counts.delaunay, 1u) << where;
     EXPECT_EQ(EdgeSet(m), EdgeSet(BuildDelaunayWithCgal(pts, sites))) << round;
     // Nothing changed since: no resync.
-    auto still = (*a)->Attempt(m, pts, nullptr, nullptr, 0.5, nullptr);
+    auto still = (*a)->Attempt(m, pts, {}, nullptr, nullptr, 0.5, nullptr);
     ASSERT_TRUE(still.ok() && still->fixed) << still.status();
     EXPECT_EQ(still->resyncs, 0u) << round;
   }
@@ -646,9 +657,9 @@ TEST(DeviceExecutor, AsyncFormsGiveWhatTheSyncFormsGive) {
       p.x += sigma * spacing * g(rng);
       p.y += sigma * spacing * g(rng);
     }
-    auto fb = (*b)->AttemptAsync(mb, to, nullptr, nullptr, 0.5, nullptr,
+    auto fb = (*b)->AttemptAsync(mb, to, {}, nullptr, nullptr, 0.5, nullptr,
                                  device::DeviceStream{});
-    auto ra = (*a)->Attempt(ma, to, nullptr, nullptr, 0.5, nullptr);
+    auto ra = (*a)->Attempt(ma, to, {}, nullptr, nullptr, 0.5, nullptr);
     auto rb = fb.get();
     ASSERT_TRUE(ra.ok() && rb.ok()) << ra.status() << rb.status();
     ASSERT_EQ(ra->fixed, rb->fixed) << "sigma " << sigma;
@@ -681,7 +692,7 @@ TEST(DeviceExecutor, AsyncFormsGiveWhatTheSyncFormsGive) {
     ASSERT_NE(EdgeSet(BuildDelaunayWithCgal(to, sites)), EdgeSet(ma));
     Mesh mc = ma;
     (*a)->Invalidate();  // another mesh for this executor
-    (void)(*a)->AttemptAsync(mc, to, nullptr, nullptr, 0.5, nullptr,
+    (void)(*a)->AttemptAsync(mc, to, {}, nullptr, nullptr, 0.5, nullptr,
                              device::DeviceStream{});
     EXPECT_EQ(EdgeSet(mc), EdgeSet(BuildDelaunayWithCgal(to, sites)));
   }
@@ -745,7 +756,7 @@ TEST(DeviceExecutor, AsyncFormsWaitForTheCallersStream) {
             cudaSuccess);
   caller_work_done = 0;
   ASSERT_EQ(cudaLaunchHostFunc(caller, SlowCallerWork, nullptr), cudaSuccess);
-  auto f = (*a)->AttemptAsync(m, to, nullptr, nullptr, 0.5, nullptr,
+  auto f = (*a)->AttemptAsync(m, to, {}, nullptr, nullptr, 0.5, nullptr,
                               device::DeviceStream{caller});
   auto r = f.get();
   EXPECT_EQ(caller_work_done.load(), 1) << "the attempt did not wait";
@@ -914,7 +925,7 @@ TEST(DeviceExecutor, FixedAttemptDownloadsWhatChanged) {
     Mesh m = BuildDelaunayWithCgal(pts, sites);
     const Mesh before = m;
     (*a)->Invalidate();  // a mesh from elsewhere
-    auto r = (*a)->Attempt(m, to, nullptr, nullptr, 1.0, nullptr);
+    auto r = (*a)->Attempt(m, to, {}, nullptr, nullptr, 1.0, nullptr);
     ASSERT_TRUE(r.ok()) << r.status();
     ASSERT_TRUE(r->fixed) << where;
     const uint64_t ne = m.num_half_edges(), nv = m.num_vertices();

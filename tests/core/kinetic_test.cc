@@ -176,6 +176,59 @@ TEST(Kinetic, WholeStepSubdivision) {
       *t, 6, [&](int) { return Brownian(n, 0.5 / std::sqrt(double(n)), rng); });
 }
 
+// Round and device executors (RoundStepPolicy::hold_culprits): a fixing
+// round that finds no flip holds the stalled triangles' culprits back and
+// the attempt goes on, instead of failing and being repeated with the stuck
+// vertices and their neighbours held. Both settings end every step at
+// CGAL's triangulation; with hold-back fewer attempts fail and fewer
+// vertices are removed and inserted again.
+TEST(Kinetic, StalledFixingHoldsCulpritsBackInsteadOfFailing) {
+  if (testing::kRegionExecutor) GTEST_SKIP() << "region executor";
+  const size_t n = 3000;
+  const double spacing = 1.0 / std::sqrt(double(n));
+  struct Totals {
+    uint64_t failed = 0, held = 0, reinserted = 0;
+    PathTally tally;
+  };
+  auto run = [&](bool hold) {
+    TriangulationOptions opt = testing::ExecutorOptions();
+    opt.round.hold_culprits = hold;
+    opt.round.rebuild_fraction = 1.0;  // always repaired locally
+    auto t = Triangulation::Create(testing::UniformPoints(n, 71), opt);
+    EXPECT_TRUE(t.ok());
+    Totals totals;
+    std::mt19937_64 rng(72);
+    for (int s = 0; s < 6; ++s) {
+      auto r = t->ApplyDisplacements(Brownian(n, 0.15 * spacing, rng));
+      EXPECT_TRUE(r.ok()) << r.status();
+      if (!r.ok()) break;
+      totals.tally.Add(*r);
+      totals.failed += r->failed_attempts;
+      totals.held += r->held_vertices;
+      totals.reinserted += r->reinserted;
+      EXPECT_TRUE(t->Validate().ok()) << "step " << s;
+      EXPECT_EQ(EdgesAsPositions(*t), CgalDelaunayEdges(t->Positions()))
+          << "hold " << hold << ", step " << s;
+    }
+    return totals;
+  };
+  const Totals with = run(true), without = run(false);
+  std::printf(
+      "hold-back: %llu failed attempts, %llu held, %llu re-inserted; "
+      "without: %llu failed attempts, %llu re-inserted\n",
+      static_cast<unsigned long long>(with.failed),
+      static_cast<unsigned long long>(with.held),
+      static_cast<unsigned long long>(with.reinserted),
+      static_cast<unsigned long long>(without.failed),
+      static_cast<unsigned long long>(without.reinserted));
+  EXPECT_EQ(with.tally.rebuilt, 0) << with.tally.reasons;
+  EXPECT_EQ(without.tally.rebuilt, 0) << without.tally.reasons;
+  EXPECT_GT(with.held, 0u);
+  EXPECT_GT(without.failed, 0u);
+  EXPECT_LT(with.failed, without.failed);
+  EXPECT_LE(with.reinserted, without.reinserted);
+}
+
 TEST(Kinetic, SparseUpdates) {
   const size_t n = 3000;
   auto t = Triangulation::Create(testing::UniformPoints(n, 51),

@@ -255,6 +255,70 @@ TEST(FlipRules, NonConvexQuadHasNoInteriorFlip) {
   EXPECT_GT(stuck, 0);
 }
 
+// The hold-back rule: a stuck triangle's culprit is the moving vertex whose
+// old position alone repairs it (here the one pushed far through an edge,
+// not its neighbour that moved a little); without it, every moving corner.
+TEST(FlipRules, CulpritIsTheVertexWhoseOldPositionRepairs) {
+  const std::vector<Vec2> pts = {{0, 0},  {4, 0}, {2, 1},  {2, -1},
+                                 {-3, 3}, {7, 3}, {2, -6}, {2, 6}};
+  Mesh mesh = BuildDelaunayWithCgal(pts, AllSites(pts.size()));
+  const MeshView m = mesh.view();
+  std::vector<Vec2> moved = pts;
+  moved[2] = {2, -5};   // far past vertex 3: no flip repairs it
+  moved[0] = {0.1, 0};  // a neighbour that moved a little
+  auto moving = [&](uint32_t u) { return moved[u] != pts[u]; };
+  int stuck = 0;
+  for (uint32_t t = 0; t < mesh.num_triangles(); ++t) {
+    if (rules::TriangleOk(m, moved.data(), t)) continue;
+    if (rules::ProposeFixFlip(m, moved.data(), t).edge != kNoEdge) continue;
+    ++stuck;
+    uint32_t v[3], e[3];
+    const int n = rules::Culprits(m, moved.data(), pts.data(), t, moving, v, e);
+    ASSERT_EQ(n, 1) << t;
+    EXPECT_EQ(v[0], 2u) << t;
+    EXPECT_EQ(m.origin[e[0]], 2u) << t;  // a half-edge leaving it
+    EXPECT_TRUE(
+        rules::TriangleOk(m, rules::PosWith{moved.data(), 2, pts[2]}, t));
+    // Vertex 2 may not be held (held already): the others that moved.
+    auto others = [&](uint32_t u) { return u != 2 && moving(u); };
+    const int k = rules::Culprits(m, moved.data(), pts.data(), t, others, v, e);
+    for (int i = 0; i < k; ++i) {
+      EXPECT_EQ(v[i], 0u) << t;
+      EXPECT_EQ(m.origin[e[i]], 0u) << t;
+    }
+    // Nothing moving: no culprit.
+    auto none = [](uint32_t) { return false; };
+    EXPECT_EQ(rules::Culprits(m, moved.data(), pts.data(), t, none, v, e), 0);
+  }
+  EXPECT_GT(stuck, 0);
+}
+
+// ForEachStarAndHullRing lists every triangle whose validity reads the
+// vertex: moving the vertex anywhere changes no other triangle's
+// TriangleOk (hull vertices included, whose hull neighbours' turns read
+// them).
+TEST(FlipRules, StarAndHullRingHoldEveryTriangleAVertexDecides) {
+  const auto pts = testing::UniformPoints(300, 17);
+  Mesh mesh = BuildDelaunayWithCgal(pts, AllSites(pts.size()));
+  const MeshView m = mesh.view();
+  std::mt19937_64 rng(18);
+  std::uniform_real_distribution<double> u(-0.5, 1.5);
+  for (uint32_t v = 0; v < pts.size(); ++v) {
+    std::vector<uint8_t> listed(mesh.num_triangles(), 0);
+    rules::ForEachStarAndHullRing(m, mesh.vertex_edge()[v],
+                                  [&](uint32_t t) { listed[t] = 1; });
+    for (int trial = 0; trial < 4; ++trial) {
+      const rules::PosWith elsewhere{pts.data(), v, Vec2{u(rng), u(rng)}};
+      for (uint32_t t = 0; t < mesh.num_triangles(); ++t) {
+        if (listed[t]) continue;
+        ASSERT_EQ(rules::TriangleOk(m, pts.data(), t),
+                  rules::TriangleOk(m, elsewhere, t))
+            << "vertex " << v << ", triangle " << t;
+      }
+    }
+  }
+}
+
 // The bounded fix rule (what a region executor runs in parallel) asks
 // before it reads any triangle but its own, stops at the first refusal, and
 // proposes what the unbounded rule proposes whenever nothing was refused.
