@@ -115,6 +115,24 @@ KINETRI_HD inline void ForEachStarAndHullRing(const MeshView& m, uint32_t e0,
   } while (e != e0);
 }
 
+// A half-edge leaving each vertex whose position TriangleOk(t) reads: t's
+// own for a finite triangle; for a ghost triangle those of its hull turn
+// (the previous hull vertex, the spoke's, the next). False for a ghost
+// triangle without a spoke.
+KINETRI_HD inline bool DecidingEdges(const MeshView& m, uint32_t t,
+                                     uint32_t edge[3]) {
+  if (m.IsGhost(t)) {
+    const uint32_t s = SpokeOf(m, t);
+    if (s == kNoEdge) return false;
+    edge[0] = Prev(m.twin[s]);
+    edge[1] = s;
+    edge[2] = Prev(s);
+  } else {
+    for (uint32_t k = 0; k < 3; ++k) edge[k] = 3 * t + k;
+  }
+  return true;
+}
+
 // The hold-back rule: the culprits of an invalid triangle t that no flip
 // repairs, among the vertices its TriangleOk reads (its corners; for a
 // ghost triangle the three of its hull turn) for which moving(u) holds
@@ -128,15 +146,7 @@ KINETRI_HD inline int Culprits(const MeshView& m, const Vec2* pos,
                                const Moving& moving, uint32_t vertex[3],
                                uint32_t edge[3]) {
   uint32_t cand[3], out_edge[3];
-  if (m.IsGhost(t)) {
-    const uint32_t s = SpokeOf(m, t);
-    if (s == kNoEdge) return 0;
-    out_edge[0] = Prev(m.twin[s]);
-    out_edge[1] = s;
-    out_edge[2] = Prev(s);
-  } else {
-    for (uint32_t k = 0; k < 3; ++k) out_edge[k] = 3 * t + k;
-  }
+  if (!DecidingEdges(m, t, out_edge)) return 0;
   for (int k = 0; k < 3; ++k) cand[k] = m.origin[out_edge[k]];
   int best = -1;
   double best_d = -1.0;

@@ -390,15 +390,7 @@ void RegionExecutor::HoldCulpritsIn(const MeshView& m, RegionSlots b,
     // The vertices TriangleOk(t) reads (rules::Culprits' candidates), each
     // with a half-edge leaving it (vertex_edge may be stale while fixing).
     uint32_t cand[3], edge[3];
-    if (m.IsGhost(t)) {
-      const uint32_t s = rules::SpokeOf(m, t);
-      if (s == kNoEdge) continue;
-      edge[0] = Prev(m.twin[s]);
-      edge[1] = s;
-      edge[2] = Prev(s);
-    } else {
-      for (int k = 0; k < 3; ++k) edge[k] = 3 * t + k;
-    }
+    if (!rules::DecidingEdges(m, t, edge)) continue;
     for (int k = 0; k < 3; ++k) cand[k] = m.origin[edge[k]];
     if (kBounded) {
       // Every vertex it may try or hold: its star in b, off the hull.
