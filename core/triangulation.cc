@@ -93,6 +93,13 @@ std::optional<Vec2> HalfwayGoal(const Vec2& a, const Vec2& b) {
   return h;
 }
 
+// Every point at site v (v and the duplicates chained after it, all at
+// one position) gets the goal g.
+void SetSiteGoal(const std::vector<uint32_t>& dup_next, uint32_t v,
+                 const Vec2& g, std::vector<Vec2>& goal) {
+  for (uint32_t p = v; p != kNoVertex; p = dup_next[p]) goal[p] = g;
+}
+
 }  // namespace
 
 DisplacementBatch DisplacementBatch::Dense(std::vector<Vec2> deltas) {
@@ -588,7 +595,7 @@ void Triangulation::KeepHeldBack(const std::vector<uint32_t>& held,
                                  std::vector<Vec2>& to,
                                  std::vector<uint32_t>* out) const {
   for (uint32_t v : held) {
-    for (uint32_t p = v; p != kNoVertex; p = dup_next_[p]) to[p] = pos_[p];
+    SetSiteGoal(dup_next_, v, pos_[v], to);
     out->push_back(v);
   }
 }
@@ -898,7 +905,7 @@ bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
   std::vector<Vec2> goal = next;
   std::vector<uint32_t> active = moved_points;  // candidates still to move
   auto set_goal = [&](uint32_t v, const Vec2& g) {
-    for (uint32_t p = v; p != kNoVertex; p = dup_next_[p]) goal[p] = g;
+    SetSiteGoal(dup_next_, v, g, goal);
   };
   // Removes vertices (sorted, unique) for re-insertion at the end of the
   // step, within the re-insertion budget; false (with *reason) when it is
@@ -1014,10 +1021,13 @@ bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
           halve_on_resume[v] = 0;
           // Half of the remaining motion; a vertex fixing held back k times
           // takes 1 / 2^k of it (it was held at each larger part).
-          std::optional<Vec2> h = next[v];
-          for (int k = 0; h && k < std::max(1, int{held_in_fix_count[v]});
-               ++k) {
-            h = HalfwayGoal(pos_[v], *h);
+          // (Halving stops at the last point strictly between the ends.)
+          std::optional<Vec2> h;
+          for (int k = 0; k < std::max(1, int{held_in_fix_count[v]}); ++k) {
+            const std::optional<Vec2> m =
+                HalfwayGoal(pos_[v], h.value_or(next[v]));
+            if (!m) break;
+            h = m;
           }
           if (h) {
             set_goal(v, *h);
