@@ -901,6 +901,10 @@ bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
   std::vector<uint8_t> halve_on_resume(n, 0);
   // How often fixing held each vertex back in this step (hold_culprits).
   std::vector<uint8_t> held_in_fix_count(n, 0);
+  // Vertices held with their motion halved kMaxHalvings times: they stay at
+  // pos_ and are removed for re-insertion once the others are done.
+  std::vector<uint8_t> parked(n, 0);
+  std::vector<uint32_t> parked_list;
   const auto& ve = mesh_.vertex_edge();
   std::vector<Vec2> goal = next;
   std::vector<uint32_t> active = moved_points;  // candidates still to move
@@ -997,25 +1001,37 @@ bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
     }
     // (A pass legalized the holes of earlier removals.)
     if (passed) removal_touched_.clear();
-    // A vertex fixing held back after its motion was halved too often is
-    // removed and re-inserted (the mesh is valid for pos_ either way).
-    if (!held_exhausted.empty()) {
-      std::sort(held_exhausted.begin(), held_exhausted.end());
-      held_exhausted.erase(
-          std::unique(held_exhausted.begin(), held_exhausted.end()),
-          held_exhausted.end());
-      if (!remove_for_reinsertion(held_exhausted)) return false;
+    // A vertex fixing held back after its motion was halved too often
+    // stays where it is (fixing left it at pos_) until the other vertices
+    // are done, and is then removed and re-inserted: the host changes the
+    // mesh once per step for all of them, not after every attempt (on the
+    // device each host change costs an upload of the whole mesh).
+    for (uint32_t v : held_exhausted) {
+      if (!parked[v]) {
+        parked[v] = 1;
+        parked_list.push_back(v);
+      }
     }
     if (passed) {
       // Held-back vertices now finish their motion.
       std::vector<uint32_t> held;
       for (uint32_t v : active) {
-        if (rep_[v] == v && ve[v] != kNoEdge && goal[v] != next[v]) {
+        if (rep_[v] == v && ve[v] != kNoEdge && goal[v] != next[v] &&
+            !parked[v]) {
           held.push_back(v);
         }
       }
-      // (A removal above leaves its hole to be legalized by one more pass.)
-      if (held.empty() && removal_touched_.empty()) break;
+      if (held.empty() && removal_touched_.empty()) {
+        std::vector<uint32_t> to_remove;
+        for (uint32_t v : parked_list) {
+          if (ve[v] != kNoEdge) to_remove.push_back(v);
+        }
+        parked_list.clear();
+        if (to_remove.empty()) break;
+        std::sort(to_remove.begin(), to_remove.end());
+        if (!remove_for_reinsertion(to_remove)) return false;
+        // (One more pass legalizes the holes.)
+      }
       for (uint32_t v : held) {
         if (halve_on_resume[v] && level[v] < kMaxHalvings) {
           halve_on_resume[v] = 0;
