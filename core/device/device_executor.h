@@ -13,11 +13,12 @@
 //
 // The executor owns a device copy of the mesh that lives across steps: after
 // a successful attempt the device and host meshes are equal and the next
-// step uploads only positions. Whoever changes the host mesh otherwise
-// (re-insertion, rebuild, renumbering) calls Invalidate(); the next attempt
-// uploads it again. Hold-back decisions, re-insertion and rebuilds stay on
-// the host (Triangulation), with explicit transfers that the attempt
-// reports.
+// step uploads only positions: the entries that changed since the last
+// attempt when they are at most a quarter, else all of them. Whoever changes
+// the host mesh otherwise (re-insertion, rebuild, renumbering) calls
+// Invalidate(); the next attempt uploads it again. Hold-back decisions,
+// re-insertion and rebuilds stay on the host (Triangulation), with explicit
+// transfers that the attempt reports.
 #ifndef KINETRI_CORE_DEVICE_DEVICE_EXECUTOR_H_
 #define KINETRI_CORE_DEVICE_DEVICE_EXECUTOR_H_
 

@@ -32,6 +32,7 @@
 #include <thrust/iterator/counting_iterator.h>
 #include <thrust/merge.h>
 #include <thrust/remove.h>
+#include <thrust/scatter.h>
 #include <thrust/sort.h>
 #include <thrust/transform.h>
 #include <thrust/transform_reduce.h>
@@ -876,12 +877,15 @@ class RoundDeviceExecutor final : public DeviceExecutor {
                                &win_edges_,   &next_,        &touched_,
                                &seeds_,       &counters_,    &loop_list0_,
                                &loop_list1_,  &loop_state_,  &queued_,
-                               &patch_count_, &patch_index_, &patch_value_}) {
+                               &patch_count_, &patch_index_, &patch_value_,
+                               &held_,        &change_index_}) {
       words += v->capacity();
     }
     return words * sizeof(uint32_t) + known_.capacity() + flags_.capacity() +
            loop_cand_.capacity() + loop_won_.capacity() +
-           pos_.capacity() * sizeof(Vec2) +
+           (pos_.capacity() + from_.capacity() + change_value_.capacity()) *
+               sizeof(Vec2) +
+           culprit_keys_.capacity() * sizeof(uint64_t) +
            props_.capacity() * sizeof(rules::FixProposal) + pool_.bytes() +
            queries_.bytes();
   }
@@ -1022,6 +1026,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     host_changed_ = true;
     working_is_base_ = false;
     from_ready_ = false;
+    pos_mirror_.valid = from_mirror_.valid = false;
     for (U32Vector* v : {&tri_claim_, &vert_claim_, &last_, &queued_, &held_}) {
       v->clear();
     }
@@ -1120,8 +1125,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       vertex_edge_.assign(base_vertex_edge_.begin(), base_vertex_edge_.end());
       working_is_base_ = true;
     }
-    Upload(to, pos_);
-    out.bytes_uploaded += sizeof(Vec2) * to.size();
+    out.bytes_uploaded += UploadChanged(to, pos_, pos_mirror_);
     from_host_ = from.size() == to.size() ? from : absl::Span<const Vec2>();
     from_ready_ = false;
     held_.clear();
@@ -1162,6 +1166,8 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     out.fix_seconds = Since(t0);
     if (fixed < 0) {
       out.cancelled = true;
+      // (The positions it held back are not known here.)
+      pos_mirror_.valid = false;
       return out;
     }
     DownloadHeld(&out);
@@ -1280,6 +1286,61 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     Download(vertex_edge_, &host_vertex_edge_);
     mesh.SwapArrays(&host_origin_, &host_twin_, &host_vertex_edge_);
     out->bytes_downloaded += 4 + 8ull * ne + 4ull * nv;
+  }
+
+  // A device array of positions and the host's copy of what it holds.
+  struct Mirror {
+    std::vector<Vec2> values;
+    bool valid = false;  // false: the device array is not known
+  };
+
+  // Makes `device` hold `host`, sending only the entries that differ from
+  // the mirror when they are at most a quarter (a sparse step's few moving
+  // vertices, where the whole array would cross the bus every attempt),
+  // else the whole array. Returns the bytes sent.
+  uint64_t UploadChanged(absl::Span<const Vec2> host,
+                         thr::device_vector<Vec2>& device, Mirror& mirror) {
+    const size_t n = host.size();
+    if (mirror.valid && mirror.values.size() == n && device.size() == n) {
+      const size_t most = n / 4;
+      host_change_index_.clear();
+      host_change_value_.clear();
+      // (Bits, not values: 0.0 and -0.0 are different inputs.)
+      static_assert(sizeof(Vec2) == 2 * sizeof(uint64_t));
+      const uint64_t* a = reinterpret_cast<const uint64_t*>(host.data());
+      const uint64_t* b =
+          reinterpret_cast<const uint64_t*>(mirror.values.data());
+      for (size_t i = 0; i < n && host_change_index_.size() <= most; ++i) {
+        if (((a[2 * i] ^ b[2 * i]) | (a[2 * i + 1] ^ b[2 * i + 1])) != 0) {
+          host_change_index_.push_back(static_cast<uint32_t>(i));
+          host_change_value_.push_back(host[i]);
+        }
+      }
+      const size_t nc = host_change_index_.size();
+      if (nc <= most) {
+        mirror.valid = false;  // until the scatter is through
+        if (nc > 0) {
+          change_index_.resize(nc);
+          change_value_.resize(nc);
+          staging_.ToDevice(host_change_index_.data(), nc, Raw(change_index_),
+                            stream_);
+          staging_.ToDevice(host_change_value_.data(), nc, Raw(change_value_),
+                            stream_);
+          thr::scatter(A(), change_value_.begin(), change_value_.end(),
+                       change_index_.begin(), device.begin());
+          for (size_t j = 0; j < nc; ++j) {
+            mirror.values[host_change_index_[j]] = host_change_value_[j];
+          }
+        }
+        mirror.valid = true;
+        return (sizeof(uint32_t) + sizeof(Vec2)) * nc;
+      }
+    }
+    mirror.valid = false;
+    Upload(host, device);
+    mirror.values.assign(host.begin(), host.end());
+    mirror.valid = true;
+    return sizeof(Vec2) * n;
   }
 
   // Host -> device and back through the pinned staging, on the stream.
@@ -1585,8 +1646,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     if (from_host_.empty()) return false;
     if (!from_ready_) {
       const auto t0 = std::chrono::steady_clock::now();
-      Upload(from_host_, from_);
-      out->bytes_uploaded += sizeof(Vec2) * from_host_.size();
+      out->bytes_uploaded += UploadChanged(from_host_, from_, from_mirror_);
       out->transfer_seconds += Since(t0);
       from_ready_ = true;
     }
@@ -1631,6 +1691,10 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     if (held_.empty()) return;
     Download(held_, &out->held);
     out->bytes_downloaded += 4ull * held_.size();
+    // HoldCulprit moved them to their old positions on the device.
+    if (pos_mirror_.valid) {
+      for (uint32_t v : out->held) pos_mirror_.values[v] = from_host_[v];
+    }
   }
 
   void Stuck(const MeshView& m, U32Vector& triangles, DeviceAttempt* out) {
@@ -1663,6 +1727,13 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   absl::Span<const Vec2> from_host_;
   bool from_ready_ = false;
   thr::device_vector<Vec2> from_;
+  // What pos_ and from_ hold, so that an attempt sends only the positions
+  // that changed (UploadChanged), and the changes on their way up.
+  Mirror pos_mirror_, from_mirror_;
+  std::vector<uint32_t> host_change_index_;
+  std::vector<Vec2> host_change_value_;
+  U32Vector change_index_;
+  thr::device_vector<Vec2> change_value_;
   U32Vector held_;
   thr::device_vector<uint64_t> culprit_keys_;
   // A successful attempt's changes on their way down (AppendChanges).
