@@ -1030,7 +1030,18 @@ bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
         if (to_remove.empty()) break;
         std::sort(to_remove.begin(), to_remove.end());
         if (!remove_for_reinsertion(to_remove)) return false;
-        // (One more pass legalizes the holes.)
+        // Their holes are legalized here, on the host, which changed the
+        // mesh anyway (for the device executor, an attempt would upload
+        // the whole mesh for a few hundred triangles).
+        std::vector<uint32_t> holes = std::move(removal_touched_);
+        removal_touched_.clear();
+        std::sort(holes.begin(), holes.end());
+        holes.erase(std::unique(holes.begin(), holes.end()), holes.end());
+        const auto t_legalize = std::chrono::steady_clock::now();
+        KineticExecutor::Legalize(mesh_, pos_, &holes, scratch_,
+                                  &report->flips);
+        report->legalize_seconds += SecondsSince(t_legalize);
+        break;
       }
       for (uint32_t v : held) {
         if (halve_on_resume[v] && level[v] < kMaxHalvings) {
