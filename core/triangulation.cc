@@ -1002,14 +1002,16 @@ bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
     // (A pass legalized the holes of earlier removals.)
     if (passed) removal_touched_.clear();
     // A vertex fixing held back after its motion was halved too often
-    // stays where it is (fixing left it at pos_) until the other vertices
-    // are done, and is then removed and re-inserted: the host changes the
-    // mesh once per step for all of them, not after every attempt (on the
-    // device each host change costs an upload of the whole mesh).
+    // stays at pos_ (the mesh is valid for it there) until the other
+    // vertices are done, and is then removed and re-inserted: the host
+    // changes the mesh once per step for all of them, not after every
+    // attempt (on the device each host change costs an upload of the whole
+    // mesh).
     for (uint32_t v : held_exhausted) {
       if (!parked[v]) {
         parked[v] = 1;
         parked_list.push_back(v);
+        set_goal(v, pos_[v]);
       }
     }
     if (passed) {
@@ -1021,7 +1023,8 @@ bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
           held.push_back(v);
         }
       }
-      if (held.empty() && removal_touched_.empty()) {
+      // (A passed attempt legalized every earlier hole: see above.)
+      if (held.empty()) {
         std::vector<uint32_t> to_remove;
         for (uint32_t v : parked_list) {
           if (ve[v] != kNoEdge) to_remove.push_back(v);
