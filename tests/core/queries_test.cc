@@ -778,7 +778,19 @@ TEST(Queries, CancellationStopsTheWork) {
     const double stop_ms =
         std::chrono::duration<double, std::milli>(done - fired).count();
     std::printf("query stopped %.1f ms after cancellation\n", stop_ms);
-    EXPECT_LT(stop_ms, 50.0 * (std::getenv("KINETRI_SLOW_MACHINE") ? 10 : 1));
+    // ThreadSanitizer (which runs this test for the stop word's hand-off)
+    // slows the scan 5-15x, AddressSanitizer 2-3x: a CI run under TSan
+    // stopped 75.6 ms after the token fired. Only the normal build holds
+    // it to 50 ms (KINETRI_SLOW_MACHINE relaxes that 10x).
+#if defined(__SANITIZE_THREAD__)
+    const double limit_ms = 500.0;
+#elif defined(__SANITIZE_ADDRESS__)
+    const double limit_ms = 150.0;
+#else
+    const double limit_ms = 50.0;
+#endif
+    EXPECT_LT(stop_ms,
+              limit_ms * (std::getenv("KINETRI_SLOW_MACHINE") ? 10 : 1));
   }
 }
 
