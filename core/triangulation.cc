@@ -315,6 +315,10 @@ uint64_t Triangulation::device_bytes() const {
   return device_ != nullptr ? device_->device_bytes() : 0;
 }
 
+uint64_t Triangulation::device_host_bytes() const {
+  return device_ != nullptr ? device_->host_bytes() : 0;
+}
+
 std::vector<Vec2> Triangulation::Positions() const {
   std::vector<Vec2> out(pos_.size());
   for (size_t i = 0; i < pos_.size(); ++i) out[ext_of_int_[i]] = pos_[i];

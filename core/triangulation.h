@@ -202,6 +202,9 @@ class Triangulation {
   Triangulation Clone() const;
   // Device memory held by the device executor (0 for the CPU executors).
   uint64_t device_bytes() const;
+  // Host memory the device executor holds beside the mesh (0 for the CPU
+  // executors).
+  uint64_t device_host_bytes() const;
   // The device executor (executor == kDevice), else null. Queries
   // (core/queries.h) run on it, over the view of the current step.
   device::DeviceExecutor* device_executor() const { return device_.get(); }

@@ -9,8 +9,33 @@
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/strip.h"
+#include "core/device/device_executor.h"
 
 namespace kinetri::server {
+
+namespace {
+
+// Host memory per point a session's device executor adds to the host
+// session (0 on the CPU).
+uint64_t DeviceHostBytesPerPoint(std::string_view backend) {
+  if (backend == "cpu") return 0;
+  return core::device::kDeviceHostBytesPerPoint +
+         (backend == "emulated" ? core::device::kDeviceBytesPerPoint : 0);
+}
+
+}  // namespace
+
+uint64_t MemoryBudget::SessionBytesPerPoint(std::string_view backend) {
+  return kSessionBytesPerPoint + DeviceHostBytesPerPoint(backend);
+}
+
+uint64_t MemoryBudget::CopyBytesPerPoint(std::string_view backend) {
+  return kCopyBytesPerPoint + DeviceHostBytesPerPoint(backend);
+}
+
+uint64_t MemoryBudget::DeviceFixedBytes(std::string_view backend) {
+  return backend == "cpu" ? 0 : core::device::kDeviceHostFixedBytes;
+}
 
 MemoryBudget::Reservation& MemoryBudget::Reservation::operator=(
     Reservation&& o) noexcept {

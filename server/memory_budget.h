@@ -6,6 +6,7 @@
 
 #include <cstdint>
 #include <string>
+#include <string_view>
 
 #include "absl/status/statusor.h"
 #include "absl/synchronization/mutex.h"
@@ -20,6 +21,15 @@ class MemoryBudget {
   // readers hold the current one under kCopyBytesPerPoint.
   static constexpr uint64_t kSessionBytesPerPoint = 350;
   static constexpr uint64_t kCopyBytesPerPoint = 160;
+  // The same by where the session runs (its backend name: "cpu",
+  // "emulated", "cuda"): on a device, the executor's host memory beside the
+  // mesh (its position mirrors and download arrays) is added, and on the
+  // emulated device, whose memory is the host's, the device memory too. A
+  // copy gets an executor of its own. Plus, once per session or copy on a
+  // device, DeviceFixedBytes (its pinned staging).
+  static uint64_t SessionBytesPerPoint(std::string_view backend);
+  static uint64_t CopyBytesPerPoint(std::string_view backend);
+  static uint64_t DeviceFixedBytes(std::string_view backend);
   // A query block: its rows' bookkeeping (the queries, their order, sizes
   // and offsets: ~100 bytes) and each result kept twice (the rows as they
   // are found, then the answer), 4 bytes per id and 8 per distance.

@@ -115,8 +115,10 @@ KinetriServiceImpl::RestoreReport KinetriServiceImpl::EnableDurability(
       backend = core::device::DeviceBackendName(limits.device);
     }
     const uint64_t n = r.positions.size();
-    auto memory = budget_->Reserve(n * MemoryBudget::kSessionBytesPerPoint,
-                                   absl::StrCat("restoring ", key));
+    auto memory =
+        budget_->Reserve(n * MemoryBudget::SessionBytesPerPoint(backend) +
+                             MemoryBudget::DeviceFixedBytes(backend),
+                         absl::StrCat("restoring ", key));
     if (!memory.ok()) {
       broken[key] = std::string(memory.status().message());
       continue;
@@ -357,13 +359,14 @@ grpc::Status KinetriServiceImpl::CreateSessionFromBytes(
             device_bytes >> 20, " MiB of device memory; ",
             core::device::DeviceFreeBytes(limits.device) >> 20, " MiB free"));
   }
-  // Admitted against the memory budget before any point is stored (the
-  // emulated device's memory is host memory).
-  const bool host_device =
-      on_device && limits.device == core::device::DeviceBackend::kEmulated;
+  // Admitted against the memory budget before any point is stored (with
+  // the device executor's host memory, and the emulated device's memory,
+  // which is host memory).
+  const std::string backend =
+      on_device ? core::device::DeviceBackendName(limits.device) : "cpu";
   auto memory = budget_->Reserve(
-      header.point_count() * MemoryBudget::kSessionBytesPerPoint +
-          (host_device ? device_bytes : 0),
+      header.point_count() * MemoryBudget::SessionBytesPerPoint(backend) +
+          MemoryBudget::DeviceFixedBytes(backend),
       absl::StrCat("CreateSession of ", header.point_count(), " points"));
   if (!memory.ok()) return ToGrpc(memory.status());
   const bool client_ids =
@@ -481,9 +484,7 @@ grpc::Status KinetriServiceImpl::CreateSessionFromBytes(
             " exceeds 100 years (0: the server's default)"));
   }
   auto session = std::make_shared<Session>(
-      id, std::move(*tri),
-      on_device ? core::device::DeviceBackendName(limits.device) : "cpu",
-      max_results, threads,
+      id, std::move(*tri), backend, max_results, threads,
       client_ids ? std::make_shared<const PointIdMap>(std::move(ids)) : nullptr,
       std::move(*memory), budget_);
   {

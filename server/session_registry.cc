@@ -137,8 +137,9 @@ absl::StatusOr<core::StepReport> Session::ApplyStep(
       if (!st.ok()) return st;
     }
     if (budget_ != nullptr) {
-      auto r = budget_->Reserve(more * MemoryBudget::kSessionBytesPerPoint,
-                                absl::StrCat("add: ", more, " points"));
+      auto r =
+          budget_->Reserve(more * MemoryBudget::SessionBytesPerPoint(backend_),
+                           absl::StrCat("add: ", more, " points"));
       if (!r.ok()) return r.status();
       growth.push_back(*std::move(r));
     }
@@ -157,12 +158,12 @@ absl::StatusOr<core::StepReport> Session::ApplyStep(
   }
   MemoryBudget::Reservation copy_memory;
   if (!target && budget_ != nullptr) {
-    // A copy on the emulated device also holds its device scratch in host
-    // memory.
-    const uint64_t per_point =
-        MemoryBudget::kCopyBytesPerPoint +
-        (backend_ == "emulated" ? core::device::kDeviceBytesPerPoint : 0);
-    auto r = budget_->Reserve(count * per_point, "step copy");
+    // A copy on a device has an executor of its own (on the emulated
+    // device, its device memory is host memory).
+    auto r =
+        budget_->Reserve(count * MemoryBudget::CopyBytesPerPoint(backend_) +
+                             MemoryBudget::DeviceFixedBytes(backend_),
+                         "step copy");
     if (r.ok()) {
       copy_memory = std::move(*r);
     } else {

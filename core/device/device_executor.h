@@ -217,6 +217,10 @@ class DeviceExecutor {
   // Device memory held across steps (mesh, positions, claims, scratch, the
   // query view).
   virtual uint64_t device_bytes() const = 0;
+  // Host memory held across steps beside the host mesh: the mirrors of the
+  // device's positions, the arrays the next mesh download goes into, the
+  // changes on their way up and down, the pinned staging.
+  virtual uint64_t host_bytes() const = 0;
 
   // The device loop's settings (LoopControl); they apply from the next
   // attempt. rounds_per_check 0 is taken as 1.
@@ -243,6 +247,13 @@ class DeviceExecutor {
 // tests/core/device_executor_test.cc). Used for admission before anything
 // is allocated.
 inline constexpr uint64_t kDeviceBytesPerPoint = 256;
+// Upper bound of the host memory the device executor holds per point
+// beside the host mesh (host_bytes(): two position mirrors, 32 bytes; the
+// download arrays, ~52; the largest patch and change lists, ~16), plus
+// kDeviceHostFixedBytes of pinned staging; checked with the above. The
+// server admits a device session's host memory with it.
+inline constexpr uint64_t kDeviceHostBytesPerPoint = 112;
+inline constexpr uint64_t kDeviceHostFixedBytes = uint64_t{8} << 20;
 // Query scratch kept between queries, per query running at once (larger
 // buffers are freed when their query ends). Checked with the above.
 inline constexpr uint64_t kDeviceQueryScratchBytes = uint64_t{8} << 20;

@@ -890,6 +890,17 @@ class RoundDeviceExecutor final : public DeviceExecutor {
            queries_.bytes();
   }
 
+  uint64_t host_bytes() const override {
+    return (pos_mirror_.values.capacity() + from_mirror_.values.capacity() +
+            host_change_value_.capacity()) *
+               sizeof(Vec2) +
+           (host_change_index_.capacity() + host_patch_index_.capacity() +
+            host_patch_value_.capacity() + host_origin_.capacity() +
+            host_twin_.capacity() + host_vertex_edge_.capacity()) *
+               sizeof(uint32_t) +
+           staging_.bytes();
+  }
+
   absl::StatusOr<NeighborLists> Query(const TriangulationView& host,
                                       uint64_t generation,
                                       const DeviceQuery& query) override {

@@ -37,6 +37,7 @@ inline constexpr size_t kStagingChunkBytes = size_t{4} << 20;
 #else
 inline constexpr size_t kStagingChunkBytes = size_t{16} << 10;
 #endif
+static_assert(2 * kStagingChunkBytes <= kDeviceHostFixedBytes);
 
 class Staging {
  public:

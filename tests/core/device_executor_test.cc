@@ -822,6 +822,7 @@ TEST(DeviceExecutor, MeshStaysResidentAcrossSteps) {
       Triangulation::Create(testing::UniformPoints(n, 11), DeviceOptions());
   ASSERT_TRUE(t.ok());
   EXPECT_EQ(t->device_bytes(), 0u);  // nothing goes up before a step
+  EXPECT_EQ(t->device_host_bytes(), 0u);
   std::mt19937_64 rng(12);
   const double spacing = 1.0 / std::sqrt(double(n));
   const MeshArrays m0 = ArraysOf(*t);
@@ -875,9 +876,17 @@ TEST(DeviceExecutor, MeshStaysResidentAcrossSteps) {
   // legalizes every edge: the biggest worklists).
   for (double sigma : {0.01, 0.3, 1.0}) {
     ASSERT_TRUE(t->ApplyDisplacements(Brownian(n, sigma * spacing, rng)).ok());
-    std::printf("sigma %.2f: %.1f device bytes per point\n", sigma,
-                double(t->device_bytes()) / n);
+    std::printf(
+        "sigma %.2f: %.1f device bytes per point, %.1f host bytes per point "
+        "beside the mesh\n",
+        sigma, double(t->device_bytes()) / n,
+        double(t->device_host_bytes()) / n);
     EXPECT_LE(t->device_bytes(), device::kDeviceBytesPerPoint * n);
+    // The host side (mirrors, download arrays, patch and change lists,
+    // staging), which the server admits beside the host session.
+    EXPECT_GT(t->device_host_bytes(), 32 * n);
+    EXPECT_LE(t->device_host_bytes(), device::kDeviceHostBytesPerPoint * n +
+                                          device::kDeviceHostFixedBytes);
   }
   // And with the query view on the device (after all-NN and an 8-NN query
   // of every point, whose scratch stays for the next queries).

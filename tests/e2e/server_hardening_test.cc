@@ -13,9 +13,11 @@
 #include <algorithm>
 #include <atomic>
 #include <chrono>
+#include <cmath>
 #include <cstdio>
 #include <cstdlib>
 #include <mutex>
+#include <random>
 #include <string>
 #include <thread>
 #include <vector>
@@ -562,8 +564,8 @@ TEST(HardeningStreams, StepBufferIsBoundedAndIdleStreamsEnd) {
 class HardeningMemory : public ::testing::Test {
  protected:
   static constexpr size_t kPoints = 100000;
-  void Start(int memory_mb) {
-    std::vector<std::string> flags = {"--threads=2"};
+  void Start(int memory_mb, const std::string& device = "none") {
+    std::vector<std::string> flags = {"--threads=2", "--device=" + device};
     if (memory_mb > 0) {
       flags.push_back("--max_memory_mb=" + std::to_string(memory_mb));
     }
@@ -746,6 +748,49 @@ TEST_F(HardeningMemory, StepWithoutRoomForACopyWaitsForReaders) {
   // server's handler dropped the snapshot).
   EXPECT_GE(step_done + std::chrono::milliseconds(100), query_done);
   EXPECT_EQ(client_->GetSession(session_)->step(), 1u);
+}
+
+// A session on the device executor holds host memory beside the host
+// session: the executor's copies of the device's positions, its download
+// arrays and, on the emulated device, the device memory itself. The
+// creation reserved only the host session and the device memory (606
+// bytes per point); it reserves the executor's host memory too (718 bytes
+// per point, plus 8 MiB of staging; the bound is checked in
+// DeviceExecutor.MeshStaysResidentAcrossSteps).
+TEST_F(HardeningMemory, DeviceSessionsAreAdmittedWithTheirHostMemory) {
+  constexpr size_t n = kPoints;
+  // 100K points at 606 bytes fit in 65 MiB (58 MiB); at 718 + 8 MiB
+  // (76.5 MiB) they do not, and fit in 80.
+  ASSERT_NO_FATAL_FAILURE(Start(65, "emulated"));
+  auto refused =
+      client_->CreateSession(UniformXY(n, 41), v1::SessionOptions(), "d");
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kResourceExhausted)
+      << refused.status();
+  EXPECT_NE(refused.status().message().find("memory budget"), std::string::npos)
+      << refused.status();
+  ASSERT_NO_FATAL_FAILURE(Start(80, "emulated"));
+  auto s = client_->CreateSession(UniformXY(n, 42), v1::SessionOptions(), "d");
+  ASSERT_TRUE(s.ok()) << s.status();
+  auto steps = client_->OpenSteps(s->name());
+  ASSERT_TRUE(steps.ok()) << steps.status();
+  std::mt19937_64 rng(43);
+  const double spacing = 1.0 / std::sqrt(double(n));
+  for (double sigma : {0.01, 0.3}) {
+    std::normal_distribution<double> g(0.0, sigma * spacing);
+    std::vector<double> d(2 * n);
+    for (double& v : d) v = g(rng);
+    auto ack = (*steps)->MoveBy(d);
+    ASSERT_TRUE(ack.ok()) << ack.status();
+  }
+  auto described = client_->GetSession(s->name());
+  ASSERT_TRUE(described.ok()) << described.status();
+  EXPECT_EQ(described->backend(), "emulated");
+  EXPECT_EQ(described->step(), 2u);
+  // A second session of the same size does not fit beside it.
+  auto second =
+      client_->CreateSession(UniformXY(n, 44), v1::SessionOptions(), "e");
+  EXPECT_EQ(second.status().code(), absl::StatusCode::kResourceExhausted)
+      << second.status();
 }
 
 // Defect 6: deleting a session returned nothing to the OS.
