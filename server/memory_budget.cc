@@ -34,7 +34,10 @@ uint64_t MemoryBudget::CopyBytesPerPoint(std::string_view backend) {
 }
 
 uint64_t MemoryBudget::DeviceFixedBytes(std::string_view backend) {
-  return backend == "cpu" ? 0 : core::device::kDeviceHostFixedBytes;
+  if (backend == "cpu") return 0;
+  return core::device::DeviceHostFixedBytes(
+      backend == "emulated" ? core::device::DeviceBackend::kEmulated
+                            : core::device::DeviceBackend::kCuda);
 }
 
 MemoryBudget::Reservation& MemoryBudget::Reservation::operator=(

@@ -156,10 +156,10 @@ KinetriServiceImpl::RestoreReport KinetriServiceImpl::EnableDurability(
       Tenant t;
       t.name = r.meta.tenant;
       SessionRegistry* registry = registry_;
-      session->set_growth_limits(limits.max_points_per_session,
-                                 [registry, t](uint64_t more) {
-                                   return registry->CheckGrowth(more, t);
-                                 });
+      session->set_growth_limits(
+          limits.max_points_per_session, [registry, t, backend](uint64_t more) {
+            return registry->CheckGrowth(more, backend, t);
+          });
     }
     session->RestoreStep(step, r.meta.create_time);
     session->set_idle_ttl(r.meta.idle_ttl_seconds);  // the clock restarts
@@ -328,8 +328,6 @@ grpc::Status KinetriServiceImpl::CreateSessionFromBytes(
                         "session header");
   }
   const v1::CreateSessionHeader header = msg.header();
-  absl::Status st = registry_->CheckCapacity(header.point_count(), *tenant);
-  if (!st.ok()) return ToGrpc(st);
   std::string id = header.session_id();
   if (id.empty()) {
     id = registry_->NewId();
@@ -348,6 +346,11 @@ grpc::Status KinetriServiceImpl::CreateSessionFromBytes(
         "docs/DEVICE.md); use BACKEND_AUTO or BACKEND_CPU");
   }
   const bool on_device = limits.has_device && asked != v1::BACKEND_CPU;
+  const std::string backend =
+      on_device ? core::device::DeviceBackendName(limits.device) : "cpu";
+  absl::Status st =
+      registry_->CheckCapacity(header.point_count(), backend, *tenant);
+  if (!st.ok()) return ToGrpc(st);
   const uint64_t device_bytes =
       on_device ? header.point_count() * core::device::kDeviceBytesPerPoint : 0;
   if (on_device &&
@@ -362,8 +365,6 @@ grpc::Status KinetriServiceImpl::CreateSessionFromBytes(
   // Admitted against the memory budget before any point is stored (with
   // the device executor's host memory, and the emulated device's memory,
   // which is host memory).
-  const std::string backend =
-      on_device ? core::device::DeviceBackendName(limits.device) : "cpu";
   auto memory = budget_->Reserve(
       header.point_count() * MemoryBudget::SessionBytesPerPoint(backend) +
           MemoryBudget::DeviceFixedBytes(backend),
@@ -491,8 +492,8 @@ grpc::Status KinetriServiceImpl::CreateSessionFromBytes(
     Tenant t = *tenant;
     SessionRegistry* registry = registry_;
     session->set_growth_limits(limits.max_points_per_session,
-                               [registry, t](uint64_t more) {
-                                 return registry->CheckGrowth(more, t);
+                               [registry, t, backend](uint64_t more) {
+                                 return registry->CheckGrowth(more, backend, t);
                                });
   }
   session->set_idle_ttl(header.options().idle_ttl_seconds() > 0

@@ -332,18 +332,23 @@ std::string Key(const std::string& tenant, const std::string& id) {
 }  // namespace
 
 absl::Status SessionRegistry::CheckTenantLocked(uint64_t points,
+                                                std::string_view backend,
                                                 const Tenant& tenant,
                                                 bool new_session) const {
   if (tenant.max_sessions == 0 && tenant.max_points == 0 &&
       tenant.max_memory_mb == 0) {
     return absl::OkStatus();
   }
-  uint64_t sessions = 0, total = 0;
+  uint64_t sessions = 0, total = 0, held_bytes = 0;
   const std::string prefix = Key(tenant.name, "");
   for (auto it = sessions_.lower_bound(prefix);
        it != sessions_.end() && absl::StartsWith(it->first, prefix); ++it) {
     ++sessions;
-    total += it->second->point_count();
+    const uint64_t n = it->second->point_count();
+    const std::string& b = it->second->backend();
+    total += n;
+    held_bytes += n * MemoryBudget::SessionBytesPerPoint(b) +
+                  MemoryBudget::DeviceFixedBytes(b);
   }
   if (new_session && tenant.max_sessions != 0 &&
       sessions >= tenant.max_sessions) {
@@ -351,8 +356,10 @@ absl::Status SessionRegistry::CheckTenantLocked(uint64_t points,
         absl::StrCat("tenant ", tenant.name, " holds its maximum of ",
                      tenant.max_sessions, " sessions; delete one first"));
   }
-  // Memory by the same per-point estimate the server's budget admits with.
-  const uint64_t bytes = (total + points) * MemoryBudget::kSessionBytesPerPoint;
+  // Memory by the same estimates the server's budget admits with.
+  const uint64_t bytes =
+      held_bytes + points * MemoryBudget::SessionBytesPerPoint(backend) +
+      (new_session ? MemoryBudget::DeviceFixedBytes(backend) : 0);
   if (tenant.max_memory_mb != 0 && bytes > (tenant.max_memory_mb << 20)) {
     return absl::ResourceExhaustedError(
         absl::StrCat("tenant ", tenant.name, ": ", total, " points held + ",
@@ -368,12 +375,14 @@ absl::Status SessionRegistry::CheckTenantLocked(uint64_t points,
 }
 
 absl::Status SessionRegistry::CheckGrowth(uint64_t points,
+                                          std::string_view backend,
                                           const Tenant& tenant) const {
   absl::MutexLock lock(&mu_);
-  return CheckTenantLocked(points, tenant, /*new_session=*/false);
+  return CheckTenantLocked(points, backend, tenant, /*new_session=*/false);
 }
 
 absl::Status SessionRegistry::CheckCapacity(uint64_t points,
+                                            std::string_view backend,
                                             const Tenant& tenant) const {
   if (points > limits_.max_points_per_session) {
     return absl::ResourceExhaustedError(
@@ -386,7 +395,7 @@ absl::Status SessionRegistry::CheckCapacity(uint64_t points,
         absl::StrCat("the server holds its maximum of ", limits_.max_sessions,
                      " sessions; delete one first"));
   }
-  return CheckTenantLocked(points, tenant);
+  return CheckTenantLocked(points, backend, tenant);
 }
 
 absl::StatusOr<std::shared_ptr<Session>> SessionRegistry::Add(
@@ -398,7 +407,7 @@ absl::StatusOr<std::shared_ptr<Session>> SessionRegistry::Add(
         absl::StrCat("the server holds its maximum of ", limits_.max_sessions,
                      " sessions; delete one first"));
   }
-  absl::Status st = CheckTenantLocked(s->point_count(), tenant);
+  absl::Status st = CheckTenantLocked(s->point_count(), s->backend(), tenant);
   if (!st.ok()) return st;
   if (!sessions_.emplace(Key(tenant.name, s->id()), s).second) {
     return absl::AlreadyExistsError(

@@ -9,6 +9,7 @@
 #include <map>
 #include <memory>
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include "absl/container/flat_hash_map.h"
@@ -203,10 +204,14 @@ class SessionRegistry {
   // conflict (server limits, then the tenant's own).
   absl::StatusOr<std::shared_ptr<Session>> Add(std::shared_ptr<Session> s,
                                                const Tenant& tenant = {});
-  // Checks that one more session of `points` would fit (before building it).
-  absl::Status CheckCapacity(uint64_t points, const Tenant& tenant = {}) const;
-  // Checks that the tenant's sessions may hold `points` more points.
-  absl::Status CheckGrowth(uint64_t points, const Tenant& tenant) const;
+  // Checks that one more session of `points` on `backend` ("cpu",
+  // "emulated", "cuda") would fit (before building it).
+  absl::Status CheckCapacity(uint64_t points, std::string_view backend = "cpu",
+                             const Tenant& tenant = {}) const;
+  // Checks that the tenant's sessions may hold `points` more points (in a
+  // session on `backend`).
+  absl::Status CheckGrowth(uint64_t points, std::string_view backend,
+                           const Tenant& tenant) const;
   // NOT_FOUND (naming the session) if absent; name is "sessions/{id}".
   absl::StatusOr<std::shared_ptr<Session>> Get(
       const std::string& name, const std::string& tenant = "") const;
@@ -227,8 +232,11 @@ class SessionRegistry {
  private:
   const ServerLimits limits_;
   mutable absl::Mutex mu_;
-  // `points` more for the tenant (in a new session unless !new_session).
-  absl::Status CheckTenantLocked(uint64_t points, const Tenant& tenant,
+  // `points` more for the tenant, on `backend` (in a new session unless
+  // !new_session); its memory by the budget's estimate of each session's
+  // backend.
+  absl::Status CheckTenantLocked(uint64_t points, std::string_view backend,
+                                 const Tenant& tenant,
                                  bool new_session = true) const
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
   // Key: "tenant/id" ("id" for the unnamed tenant); tenant names and ids

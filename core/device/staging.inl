@@ -34,10 +34,11 @@ namespace {
 
 #if THRUST_DEVICE_SYSTEM == THRUST_DEVICE_SYSTEM_CUDA
 inline constexpr size_t kStagingChunkBytes = size_t{4} << 20;
+static_assert(2 * kStagingChunkBytes <= kCudaHostFixedBytes);
 #else
 inline constexpr size_t kStagingChunkBytes = size_t{16} << 10;
+static_assert(2 * kStagingChunkBytes <= kEmulatedHostFixedBytes);
 #endif
-static_assert(2 * kStagingChunkBytes <= kDeviceHostFixedBytes);
 
 class Staging {
  public:

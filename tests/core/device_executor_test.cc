@@ -886,7 +886,8 @@ TEST(DeviceExecutor, MeshStaysResidentAcrossSteps) {
     // staging), which the server admits beside the host session.
     EXPECT_GT(t->device_host_bytes(), 32 * n);
     EXPECT_LE(t->device_host_bytes(), device::kDeviceHostBytesPerPoint * n +
-                                          device::kDeviceHostFixedBytes);
+                                          device::DeviceHostFixedBytes(
+                                              t->device_executor()->backend()));
   }
   // And with the query view on the device (after all-NN and an 8-NN query
   // of every point, whose scratch stays for the next queries).

@@ -755,12 +755,12 @@ TEST_F(HardeningMemory, StepWithoutRoomForACopyWaitsForReaders) {
 // arrays and, on the emulated device, the device memory itself. The
 // creation reserved only the host session and the device memory (606
 // bytes per point); it reserves the executor's host memory too (718 bytes
-// per point, plus 8 MiB of staging; the bound is checked in
+// per point, plus 64 KiB of staging; the bound is checked in
 // DeviceExecutor.MeshStaysResidentAcrossSteps).
 TEST_F(HardeningMemory, DeviceSessionsAreAdmittedWithTheirHostMemory) {
   constexpr size_t n = kPoints;
-  // 100K points at 606 bytes fit in 65 MiB (58 MiB); at 718 + 8 MiB
-  // (76.5 MiB) they do not, and fit in 80.
+  // 100K points at 606 bytes fit in 65 MiB (58 MiB); at 718 (68.5 MiB)
+  // they do not, and fit in 80.
   ASSERT_NO_FATAL_FAILURE(Start(65, "emulated"));
   auto refused =
       client_->CreateSession(UniformXY(n, 41), v1::SessionOptions(), "d");

@@ -53,13 +53,14 @@ class SecurityTest : public ::testing::Test {
   }
   // A TLS server with tokens for tenants alpha and beta (beta: at most one
   // session); mutual TLS when `mutual`.
-  void StartServer(bool mutual) {
+  void StartServer(bool mutual, const std::string& device = "none") {
     WriteFile(File("tokens"), std::string("# test tokens\n") + kTokenA +
                                   " alpha\n" + kTokenB + " beta sessions=1\n" +
                                   kTokenD + " delta memory_mb=1\n");
     std::vector<std::string> flags = {
         "--tls_cert=" + File("server.pem"), "--tls_key=" + File("server.key"),
-        "--auth_tokens_file=" + File("tokens"), "--tls_reload_seconds=1"};
+        "--auth_tokens_file=" + File("tokens"), "--tls_reload_seconds=1",
+        "--device=" + device};
     if (mutual) flags.push_back("--tls_client_ca=" + File("ca.pem"));
     server_ =
         std::make_unique<testing::ServerProcess>(KINETRI_SERVER_BINARY, flags);
@@ -192,6 +193,33 @@ TEST_F(SecurityTest, TenantsSeeOnlyTheirOwnSessions) {
                 .status()
                 .code(),
             absl::StatusCode::kResourceExhausted);
+}
+
+// A tenant's memory limit counts a session on the device executor with
+// the executor's host memory (and, emulated, its device memory): 718 bytes
+// per point and 64 KiB, not 350 per point.
+TEST_F(SecurityTest, TenantMemoryCountsDeviceSessions) {
+  StartServer(false, "emulated");
+  auto delta = Connect(Secure(kTokenD));  // memory_mb=1
+  auto over =
+      delta->CreateSession(testing::UniformXY(2000, 12), v1::SessionOptions());
+  EXPECT_EQ(over.status().code(), absl::StatusCode::kResourceExhausted)
+      << over.status();
+  EXPECT_NE(over.status().message().find("MiB"), std::string::npos);
+  auto on_device =
+      delta->CreateSession(testing::UniformXY(1000, 13), v1::SessionOptions());
+  ASSERT_TRUE(on_device.ok()) << on_device.status();
+  EXPECT_EQ(on_device->backend(), "emulated");
+  // Beside it (782 KiB), a CPU session of 500 points (171 KiB) fits, and
+  // one of 1000 does not.
+  v1::SessionOptions cpu;
+  cpu.set_backend(v1::BACKEND_CPU);
+  EXPECT_EQ(
+      delta->CreateSession(testing::UniformXY(1000, 14), cpu).status().code(),
+      absl::StatusCode::kResourceExhausted);
+  auto beside = delta->CreateSession(testing::UniformXY(500, 15), cpu);
+  ASSERT_TRUE(beside.ok()) << beside.status();
+  EXPECT_EQ(beside->backend(), "cpu");
 }
 
 TEST_F(SecurityTest, TokenFileReloads) {
