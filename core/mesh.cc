@@ -26,12 +26,25 @@ void Mesh::SwapArrays(std::vector<uint32_t>* origin,
   vertex_edge_.swap(*vertex_edge);
 }
 
-uint64_t Mesh::Fingerprint() const {
-  uint32_t lo = 0, hi = 0;
-  auto add = [&](const std::vector<uint32_t>& a, uint32_t salt) {
+namespace {
+
+// One entry's terms of the two fingerprint sums.
+inline uint32_t Term0(uint32_t value, uint32_t index) {
+  return (value ^ (index * 0x9E3779B9u)) * 0x85EBCA6Bu;
+}
+inline uint32_t Term1(uint32_t value, uint32_t index) {
+  return (value + (index * 0x7FEB352Du)) * 0xC2B2AE35u;
+}
+
+}  // namespace
+
+Mesh::FingerprintSums Mesh::FingerprintParts() const {
+  FingerprintSums out;
+  auto add = [&](const std::vector<uint32_t>& a, int k) {
     constexpr size_t kBlock = size_t{1} << 16;
     const uint32_t* p = a.data();
     const size_t n = a.size();
+    const uint32_t salt = static_cast<uint32_t>(k + 1);
     std::atomic<uint32_t> s0{salt}, s1{~salt};
     ParallelFor(
         0, (n + kBlock - 1) / kBlock,
@@ -40,21 +53,38 @@ uint64_t Mesh::Fingerprint() const {
               static_cast<uint32_t>(std::min(n, (b + 1) * kBlock));
           uint32_t t0 = 0, t1 = 0;
           for (uint32_t i = static_cast<uint32_t>(b * kBlock); i < end; ++i) {
-            t0 += (p[i] ^ (i * 0x9E3779B9u)) * 0x85EBCA6Bu;
-            t1 += (p[i] + (i * 0x7FEB352Du)) * 0xC2B2AE35u;
+            t0 += Term0(p[i], i);
+            t1 += Term1(p[i], i);
           }
           s0.fetch_add(t0, std::memory_order_relaxed);
           s1.fetch_add(t1, std::memory_order_relaxed);
         },
         1);
-    lo = lo * 0x27D4EB2Fu + s0.load();
-    hi = hi * 0x165667B1u + s1.load();
+    out.s0[k] = s0.load();
+    out.s1[k] = s1.load();
   };
-  add(origin_, 1);
-  add(twin_, 2);
-  add(vertex_edge_, 3);
+  add(origin_, 0);
+  add(twin_, 1);
+  add(vertex_edge_, 2);
+  return out;
+}
+
+void Mesh::FingerprintSums::Change(int array, uint32_t index, uint32_t from,
+                                   uint32_t to) {
+  s0[array] += Term0(to, index) - Term0(from, index);
+  s1[array] += Term1(to, index) - Term1(from, index);
+}
+
+uint64_t Mesh::FingerprintSums::Combine() const {
+  uint32_t lo = 0, hi = 0;
+  for (int k = 0; k < 3; ++k) {
+    lo = lo * 0x27D4EB2Fu + s0[k];
+    hi = hi * 0x165667B1u + s1[k];
+  }
   return (uint64_t{hi} << 32) | lo;
 }
+
+uint64_t Mesh::Fingerprint() const { return FingerprintParts().Combine(); }
 
 void Mesh::RebuildVertexEdges() {
   vertex_edge_.assign(num_vertices_, kNoEdge);

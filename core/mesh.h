@@ -205,6 +205,18 @@ class Mesh {
   // chance. The device executor checks by it that the host mesh is still
   // the copy it keeps. A pass over the arrays (52 MB at 1M points).
   uint64_t Fingerprint() const;
+  // The fingerprint in parts: the two sums of each array (0 origin, 1 twin,
+  // 2 vertex_edge). A caller that changes known entries follows the
+  // fingerprint with Change, without a pass (the device executor, as it
+  // applies an attempt's changes).
+  struct FingerprintSums {
+    uint32_t s0[3] = {0, 0, 0};
+    uint32_t s1[3] = {0, 0, 0};
+    // Entry `index` of `array` changes from `from` to `to`.
+    void Change(int array, uint32_t index, uint32_t from, uint32_t to);
+    uint64_t Combine() const;  // == Fingerprint() of the mesh summed
+  };
+  FingerprintSums FingerprintParts() const;
 
   // Renames vertices: new id = new_of_old[old]. kInfiniteVertex is kept.
   void RenumberVertices(const std::vector<uint32_t>& new_of_old);

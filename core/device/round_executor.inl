@@ -54,6 +54,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "core/device/atomic.h"
+#include "core/device/changed_positions.h"
 #include "core/device/device_executor.h"
 #include "core/device/device_queries.inl"
 #include "core/device/profile.h"
@@ -1106,8 +1107,10 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     // The base must be the host mesh: checked by fingerprint (a parallel
     // pass over the host arrays, Mesh::Fingerprint), so that a caller that
     // changed the mesh without Invalidate() costs an upload, not a wrong
-    // mesh.
-    const uint64_t fingerprint = mesh.Fingerprint();
+    // mesh. Its sums are kept: the download follows them through the
+    // entries it changes (DownloadResult), without a second pass.
+    attempt_sums_ = mesh.FingerprintParts();
+    const uint64_t fingerprint = attempt_sums_.Combine();
     if (!host_changed_ && base_origin_.size() == mesh.num_half_edges() &&
         nv_ == nv && fingerprint != base_fingerprint_) {
       out.resyncs = 1;
@@ -1213,9 +1216,8 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     // Download: the host mesh becomes the device mesh.
     clock_.Mark(__LINE__);
     t0 = std::chrono::steady_clock::now();
-    DownloadResult(mesh, &out);
+    DownloadResult(mesh, &out);  // (and base_fingerprint_)
     out.transfer_seconds += Since(t0);
-    base_fingerprint_ = mesh.Fingerprint();
     out.fixed = true;
     // The result is the host mesh now: it becomes the base (the next attempt
     // copies it back into the working arrays).
@@ -1252,7 +1254,9 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   // down, into host arrays kept from the previous download (the mesh's old
   // ones, of the same size: no allocation, no zero fill), swapped in whole.
   // Either way a failed copy leaves the host mesh as it was (a patch is
-  // applied once it is all on the host).
+  // applied once it is all on the host). base_fingerprint_ becomes the
+  // changed mesh's: from the attempt's sums followed through the patch, or
+  // by a pass over the whole arrays.
   void DownloadResult(Mesh& mesh, DeviceAttempt* out) {
     const uint32_t ne = mesh.num_half_edges();
     const uint32_t nv = nv_;
@@ -1279,15 +1283,23 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       staging_.ToHost(Raw(patch_value_), 2ull * np, host_patch_value_.data(),
                       stream_);
       std::vector<uint32_t>& ve = mesh.mutable_vertex_edge();
+      const std::vector<uint32_t>& origin = mesh.origin();
+      const std::vector<uint32_t>& twin = mesh.twin();
+      Mesh::FingerprintSums& sums = attempt_sums_;
       for (uint32_t k = 0; k < np; ++k) {
         const uint32_t i = host_patch_index_[k];
+        const uint32_t a = host_patch_value_[2 * k];
         if (i < ne) {
-          mesh.SetHalfEdge(i, host_patch_value_[2 * k],
-                           host_patch_value_[2 * k + 1]);
+          const uint32_t b = host_patch_value_[2 * k + 1];
+          sums.Change(0, i, origin[i], a);
+          sums.Change(1, i, twin[i], b);
+          mesh.SetHalfEdge(i, a, b);
         } else {
-          ve[i - ne] = host_patch_value_[2 * k];
+          sums.Change(2, i - ne, ve[i - ne], a);
+          ve[i - ne] = a;
         }
       }
+      base_fingerprint_ = sums.Combine();
       out->bytes_downloaded += 4 + 12ull * np;
       ++out->patched_downloads;
       return;
@@ -1296,6 +1308,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     Download(twin_, &host_twin_);
     Download(vertex_edge_, &host_vertex_edge_);
     mesh.SwapArrays(&host_origin_, &host_twin_, &host_vertex_edge_);
+    base_fingerprint_ = mesh.Fingerprint();
     out->bytes_downloaded += 4 + 8ull * ne + 4ull * nv;
   }
 
@@ -1314,20 +1327,10 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     const size_t n = host.size();
     if (mirror.valid && mirror.values.size() == n && device.size() == n) {
       const size_t most = n / 4;
-      host_change_index_.clear();
-      host_change_value_.clear();
-      // (Bits, not values: 0.0 and -0.0 are different inputs.)
-      static_assert(sizeof(Vec2) == 2 * sizeof(uint64_t));
-      const uint64_t* a = reinterpret_cast<const uint64_t*>(host.data());
-      const uint64_t* b =
-          reinterpret_cast<const uint64_t*>(mirror.values.data());
-      for (size_t i = 0; i < n && host_change_index_.size() <= most; ++i) {
-        if (((a[2 * i] ^ b[2 * i]) | (a[2 * i + 1] ^ b[2 * i + 1])) != 0) {
-          host_change_index_.push_back(static_cast<uint32_t>(i));
-          host_change_value_.push_back(host[i]);
-        }
-      }
-      const size_t nc = host_change_index_.size();
+      const bool few =
+          ChangedPositions(host, absl::MakeConstSpan(mirror.values), most,
+                           &host_change_index_, &host_change_value_);
+      const size_t nc = few ? host_change_index_.size() : most + 1;
       if (nc <= most) {
         mirror.valid = false;  // until the scatter is through
         if (nc > 0) {
@@ -1726,7 +1729,9 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   LoopControl loop_control_;
   bool host_changed_ = true;       // Invalidate(): the base is not the host's
   uint64_t base_fingerprint_ = 0;  // Mesh::Fingerprint() of the base
-  bool working_is_base_ = false;   // origin_, twin_, vertex_edge_ == base
+  // The host mesh's fingerprint sums at the attempt's start.
+  Mesh::FingerprintSums attempt_sums_;
+  bool working_is_base_ = false;  // origin_, twin_, vertex_edge_ == base
   uint32_t nv_ = 0;
   // The host mesh on the device (the base) and the copy an attempt changes.
   U32Vector base_origin_, base_twin_, base_vertex_edge_;

@@ -147,6 +147,59 @@ TEST(Mesh, FingerprintFollowsEveryEntry) {
   EXPECT_NE(mesh.Fingerprint(), f);
 }
 
+// The fingerprint in parts: its sums followed entry by entry (Change, as
+// the device executor applies an attempt's changes) equal the sums of the
+// changed mesh, and combine into its fingerprint.
+TEST(Mesh, FingerprintSumsFollowChangedEntries) {
+  const auto pts = testing::UniformPoints(20000, 5);
+  Mesh mesh = BuildDelaunayWithCgal(pts, AllSites(pts.size()));
+  Mesh::FingerprintSums sums = mesh.FingerprintParts();
+  EXPECT_EQ(sums.Combine(), mesh.Fingerprint());
+  const Mesh before = mesh;
+  // Flip a few hundred edges (each changes several half-edges), then
+  // follow every entry that differs.
+  std::mt19937 rng(6);
+  int flipped = 0;
+  for (int k = 0; k < 2000 && flipped < 300; ++k) {
+    const uint32_t e = rng() % mesh.num_half_edges();
+    const MeshView m = mesh.view();
+    if (m.origin[e] == kInfiniteVertex ||
+        m.origin[Next(e)] == kInfiniteVertex ||
+        m.origin[Prev(e)] == kInfiniteVertex) {
+      continue;
+    }
+    const uint32_t t = m.twin[e];
+    if (m.origin[Prev(t)] == kInfiniteVertex) continue;
+    m.Flip(e);
+    mesh.UpdateVertexEdgesAfterFlip(e);
+    ++flipped;
+  }
+  ASSERT_GT(flipped, 100);
+  int changed = 0;
+  for (uint32_t i = 0; i < mesh.num_half_edges(); ++i) {
+    if (before.origin()[i] != mesh.origin()[i]) {
+      sums.Change(0, i, before.origin()[i], mesh.origin()[i]);
+      ++changed;
+    }
+    if (before.twin()[i] != mesh.twin()[i]) {
+      sums.Change(1, i, before.twin()[i], mesh.twin()[i]);
+    }
+  }
+  for (uint32_t v = 0; v < mesh.num_vertices(); ++v) {
+    if (before.vertex_edge()[v] != mesh.vertex_edge()[v]) {
+      sums.Change(2, v, before.vertex_edge()[v], mesh.vertex_edge()[v]);
+    }
+  }
+  EXPECT_GT(changed, 0);
+  const Mesh::FingerprintSums again = mesh.FingerprintParts();
+  for (int k = 0; k < 3; ++k) {
+    EXPECT_EQ(sums.s0[k], again.s0[k]) << k;
+    EXPECT_EQ(sums.s1[k], again.s1[k]) << k;
+  }
+  EXPECT_EQ(sums.Combine(), mesh.Fingerprint());
+  EXPECT_NE(sums.Combine(), before.Fingerprint());
+}
+
 // Unflip undoes a flip exactly (every origin and twin), including a chain
 // of flips undone in reverse (what a stopped step does with its log).
 TEST(Mesh, UnflipUndoesFlipsInReverse) {
