@@ -249,10 +249,11 @@ class DeviceExecutor {
 inline constexpr uint64_t kDeviceBytesPerPoint = 256;
 // Upper bound of the host memory the device executor holds per point
 // beside the host mesh (host_bytes(): two position mirrors, 32 bytes; the
-// download arrays, ~52; the largest patch and change lists, ~16), plus
+// download arrays, ~52; the largest patch and change lists, ~16: about
+// 100, each array kept within a quarter over its size), plus
 // DeviceHostFixedBytes of staging (pinned on CUDA); checked with the
 // above. The server admits a device session's host memory with them.
-inline constexpr uint64_t kDeviceHostBytesPerPoint = 112;
+inline constexpr uint64_t kDeviceHostBytesPerPoint = 128;
 inline constexpr uint64_t kCudaHostFixedBytes = uint64_t{8} << 20;
 inline constexpr uint64_t kEmulatedHostFixedBytes = uint64_t{64} << 10;
 inline constexpr uint64_t DeviceHostFixedBytes(DeviceBackend backend) {

@@ -1277,6 +1277,9 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     (void)P();  // the count's download waits for the append
     staging_.ToHost(Raw(patch_count_), 1, &np, stream_);
     if (np <= cap) {
+      // (Reserved to the most a patch can hold, once: no doubling.)
+      ExactCapacity(&host_patch_index_, cap);
+      ExactCapacity(&host_patch_value_, 2ull * cap);
       host_patch_index_.resize(np);
       host_patch_value_.resize(2ull * np);
       staging_.ToHost(Raw(patch_index_), np, host_patch_index_.data(), stream_);
@@ -1327,6 +1330,8 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     const size_t n = host.size();
     if (mirror.valid && mirror.values.size() == n && device.size() == n) {
       const size_t most = n / 4;
+      ExactCapacity(&host_change_index_, most);
+      ExactCapacity(&host_change_value_, most);
       const bool few =
           ChangedPositions(host, absl::MakeConstSpan(mirror.values), most,
                            &host_change_index_, &host_change_value_);
@@ -1352,9 +1357,21 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     }
     mirror.valid = false;
     Upload(host, device);
+    ExactCapacity(&mirror.values, n);
     mirror.values.assign(host.begin(), host.end());
     mirror.valid = true;
     return sizeof(Vec2) * n;
+  }
+
+  // Makes v's capacity exactly `n` unless it is between n and n + n/4, so
+  // that the host memory held stays within kDeviceHostBytesPerPoint
+  // (a vector grown by doubling, or kept from a larger mesh, may hold
+  // twice what it needs). Keeps no contents when it reallocates.
+  template <typename T>
+  static void ExactCapacity(std::vector<T>* v, size_t n) {
+    if (v->capacity() >= n && v->capacity() <= n + n / 4) return;
+    std::vector<T>().swap(*v);
+    v->reserve(n);
   }
 
   // Host -> device and back through the pinned staging, on the stream.
@@ -1364,6 +1381,9 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     staging_.ToDevice(from.data(), from.size(), Raw(to), stream_);
   }
   void Download(U32Vector& from, std::vector<uint32_t>* to) {
+    // (The host arrays are the mesh's old ones: grown by joins, they may
+    // hold more than this mesh needs.)
+    ExactCapacity(to, from.size());
     to->resize(from.size());
     staging_.ToHost(Raw(from), from.size(), to->data(), stream_);
   }

@@ -901,6 +901,37 @@ TEST(DeviceExecutor, MeshStaysResidentAcrossSteps) {
               double(t->device_bytes()) / n);
   EXPECT_LE(t->device_bytes(), device::kDeviceBytesPerPoint * n +
                                    device::kDeviceQueryScratchBytes);
+  // After points join (the mesh's arrays grow, and the download hands their
+  // old ones to the executor) and then leave (the mirrors were sized for
+  // more), the host side stays within the bound of the points there are.
+  {
+    DisplacementBatch join = Brownian(n, 0.01 * spacing, rng);
+    std::uniform_real_distribution<double> u(0.0, 1.0);
+    for (size_t i = 0; i < n / 2; ++i) join.add.push_back({u(rng), u(rng)});
+    ASSERT_TRUE(t->ApplyDisplacements(join).ok());
+    ASSERT_TRUE(
+        t->ApplyDisplacements(Brownian(t->num_sites(), 0.01 * spacing, rng))
+            .ok());
+    DisplacementBatch leave = Brownian(t->num_sites(), 0.01 * spacing, rng);
+    for (uint32_t i = 0; i < 3 * n / 4; ++i) leave.remove.push_back(2 * i);
+    ASSERT_TRUE(t->ApplyDisplacements(leave).ok());
+    for (int s = 0; s < 2; ++s) {
+      ASSERT_TRUE(
+          t->ApplyDisplacements(Brownian(t->num_sites(), 0.01 * spacing, rng))
+              .ok());
+      const uint64_t m = t->num_sites();
+      std::printf(
+          "%llu points after joins and leaves: %.1f host bytes per "
+          "point beside the mesh\n",
+          static_cast<unsigned long long>(m),
+          double(t->device_host_bytes()) / m);
+      EXPECT_LE(
+          t->device_host_bytes(),
+          device::kDeviceHostBytesPerPoint * m +
+              device::DeviceHostFixedBytes(t->device_executor()->backend()));
+    }
+    EXPECT_TRUE(t->Validate().ok());
+  }
 }
 
 // A fixed attempt brings down what it changed: the half-edges and

@@ -754,7 +754,7 @@ TEST_F(HardeningMemory, StepWithoutRoomForACopyWaitsForReaders) {
 // session: the executor's copies of the device's positions, its download
 // arrays and, on the emulated device, the device memory itself. The
 // creation reserved only the host session and the device memory (606
-// bytes per point); it reserves the executor's host memory too (718 bytes
+// bytes per point); it reserves the executor's host memory too (734 bytes
 // per point, plus 64 KiB of staging; the bound is checked in
 // DeviceExecutor.MeshStaysResidentAcrossSteps).
 TEST_F(HardeningMemory, DeviceSessionsAreAdmittedWithTheirHostMemory) {
@@ -762,7 +762,7 @@ TEST_F(HardeningMemory, DeviceSessionsAreAdmittedWithTheirHostMemory) {
   GTEST_SKIP() << "built without the CCCL headers: no emulated device";
 #endif
   constexpr size_t n = kPoints;
-  // 100K points at 606 bytes fit in 65 MiB (58 MiB); at 718 (68.5 MiB)
+  // 100K points at 606 bytes fit in 65 MiB (58 MiB); at 734 (70 MiB)
   // they do not, and fit in 80.
   ASSERT_NO_FATAL_FAILURE(Start(65, "emulated"));
   auto refused =

@@ -196,7 +196,7 @@ TEST_F(SecurityTest, TenantsSeeOnlyTheirOwnSessions) {
 }
 
 // A tenant's memory limit counts a session on the device executor with
-// the executor's host memory (and, emulated, its device memory): 718 bytes
+// the executor's host memory (and, emulated, its device memory): 734 bytes
 // per point and 64 KiB, not 350 per point.
 TEST_F(SecurityTest, TenantMemoryCountsDeviceSessions) {
 #if !defined(KINETRI_SERVER_EMULATED_DEVICE)
@@ -213,7 +213,7 @@ TEST_F(SecurityTest, TenantMemoryCountsDeviceSessions) {
       delta->CreateSession(testing::UniformXY(1000, 13), v1::SessionOptions());
   ASSERT_TRUE(on_device.ok()) << on_device.status();
   EXPECT_EQ(on_device->backend(), "emulated");
-  // Beside it (782 KiB), a CPU session of 500 points (171 KiB) fits, and
+  // Beside it (781 KiB), a CPU session of 500 points (171 KiB) fits, and
   // one of 1000 does not.
   v1::SessionOptions cpu;
   cpu.set_backend(v1::BACKEND_CPU);
