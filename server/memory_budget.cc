@@ -35,9 +35,8 @@ uint64_t MemoryBudget::CopyBytesPerPoint(std::string_view backend) {
 
 uint64_t MemoryBudget::DeviceFixedBytes(std::string_view backend) {
   if (backend == "cpu") return 0;
-  return core::device::DeviceHostFixedBytes(
-      backend == "emulated" ? core::device::DeviceBackend::kEmulated
-                            : core::device::DeviceBackend::kCuda);
+  return backend == "emulated" ? core::device::kEmulatedHostFixedBytes
+                               : core::device::kCudaHostFixedBytes;
 }
 
 MemoryBudget::Reservation& MemoryBudget::Reservation::operator=(

@@ -1332,11 +1332,9 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       const size_t most = n / 4;
       ExactCapacity(&host_change_index_, most);
       ExactCapacity(&host_change_value_, most);
-      const bool few =
-          ChangedPositions(host, absl::MakeConstSpan(mirror.values), most,
-                           &host_change_index_, &host_change_value_);
-      const size_t nc = few ? host_change_index_.size() : most + 1;
-      if (nc <= most) {
+      if (ChangedPositions(host, absl::MakeConstSpan(mirror.values), most,
+                           &host_change_index_, &host_change_value_)) {
+        const size_t nc = host_change_index_.size();
         mirror.valid = false;  // until the scatter is through
         if (nc > 0) {
           change_index_.resize(nc);

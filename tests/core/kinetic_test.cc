@@ -623,13 +623,7 @@ TEST(Kinetic, StopAnywhereInTheStepIsUndoneAtOnce) {
     // it 5-15x, AddressSanitizer 2-3x (a stop at the step's end took 20-37
     // ms there, once 51 ms beside another test on 2 cores): only the
     // normal build holds it to 50 ms.
-#if defined(__SANITIZE_THREAD__)
-    EXPECT_LT(ms, 1000.0);
-#elif defined(__SANITIZE_ADDRESS__)
-    EXPECT_LT(ms, 150.0);
-#else
-    EXPECT_LT(ms, 50.0);
-#endif
+    EXPECT_LT(ms, testing::BySanitizer(50.0, 150.0, 1000.0));
   }
   auto r = t->ApplyDisplacements(step);
   ASSERT_TRUE(r.ok()) << r.status();

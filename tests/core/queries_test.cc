@@ -782,13 +782,7 @@ TEST(Queries, CancellationStopsTheWork) {
     // slows the scan 5-15x, AddressSanitizer 2-3x: a CI run under TSan
     // stopped 75.6 ms after the token fired. Only the normal build holds
     // it to 50 ms (KINETRI_SLOW_MACHINE relaxes that 10x).
-#if defined(__SANITIZE_THREAD__)
-    const double limit_ms = 500.0;
-#elif defined(__SANITIZE_ADDRESS__)
-    const double limit_ms = 150.0;
-#else
-    const double limit_ms = 50.0;
-#endif
+    const double limit_ms = testing::BySanitizer(50.0, 150.0, 500.0);
     EXPECT_LT(stop_ms,
               limit_ms * (std::getenv("KINETRI_SLOW_MACHINE") ? 10 : 1));
   }

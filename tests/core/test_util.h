@@ -24,6 +24,22 @@ std::vector<Vec2> Collinear(size_t n, uint64_t seed);
 // Uniform points with every point repeated `copies` times.
 std::vector<Vec2> WithDuplicates(size_t n, int copies, uint64_t seed);
 
+// A limit a test asserts on time: `normal` in the normal build, `asan`
+// under AddressSanitizer (2-3x slower), `tsan` under ThreadSanitizer
+// (5-15x).
+constexpr double BySanitizer(double normal, double asan, double tsan) {
+#if defined(__SANITIZE_THREAD__)
+  (void)normal, (void)asan;
+  return tsan;
+#elif defined(__SANITIZE_ADDRESS__)
+  (void)normal, (void)tsan;
+  return asan;
+#else
+  (void)asan, (void)tsan;
+  return normal;
+#endif
+}
+
 // Delaunay edges of the distinct positions, by CGAL; each pair lex-ordered.
 EdgeList CgalDelaunayEdges(const std::vector<Vec2>& points);
 // A dense batch of n Gaussian displacements (standard deviation sigma).
