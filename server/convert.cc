@@ -1,8 +1,10 @@
 // The one place where protobuf messages and core types are converted.
 #include "server/convert.h"
 
+#include <algorithm>
 #include <bit>
 #include <cassert>
+#include <cstdint>
 #include <cstring>
 #include <string>
 
@@ -219,7 +221,9 @@ ChunkCursor::ChunkCursor(const core::NeighborLists& lists, uint64_t count,
       distances_(distances),
       client_ids_(client_ids),
       rows_per_chunk_(std::max<uint64_t>(rows_per_chunk, 1)),
-      results_per_chunk_(std::max<uint64_t>(results_per_chunk, 1)),
+      // Offsets within a chunk are written as 32-bit varints.
+      results_per_chunk_(
+          std::clamp<uint64_t>(results_per_chunk, 1, uint64_t{UINT32_MAX})),
       start_(count > 0 ? lists.offsets[0] : 0) {}
 
 ChunkCursor::Cut ChunkCursor::NextCut() const {
@@ -265,6 +269,29 @@ inline char* PutVarint(char* p, uint64_t v) {
   *p++ = static_cast<char>(v);
   return p;
 }
+// The same for 32-bit values, without a branch per byte: the bulk of an
+// answer (ids and offsets, of mixed lengths, so the byte loop's exit was
+// mispredicted about once per value). 10K radius rows of 4-12 results,
+// warm: 0.78-0.81 ms to encode with the loop, 0.35-0.45 ms with this.
+inline size_t VarintSize32(uint32_t v) {
+  // Bits used (1 for 0) -> ceil(bits / 7), as protobuf computes it.
+  const uint32_t log2 = 31 - static_cast<uint32_t>(std::countl_zero(v | 1));
+  return (log2 * 9 + 73) / 64;
+}
+// Writes 8 bytes at p (the buffer has kVarintSlack bytes after its end)
+// and returns p + VarintSize32(v).
+constexpr size_t kVarintSlack = 8;
+inline char* PutVarint32(char* p, uint32_t v) {
+  const uint64_t w = v;
+  // 7 bits per byte, low group first (little-endian store below)...
+  uint64_t x = (w & 0x7f) | (w & 0x3f80) << 1 | (w & 0x1fc000) << 2 |
+               (w & 0xfe00000) << 3 | (w & 0xf0000000) << 4;
+  const size_t n = VarintSize32(v);
+  // ...and the continuation bit on every byte but the last.
+  x |= uint64_t{0x8080808080} & ((uint64_t{1} << (8 * (n - 1))) - 1);
+  std::memcpy(p, &x, sizeof(x));
+  return p + n;
+}
 constexpr uint32_t kVarint = 0, kDelimited = 2;
 constexpr uint64_t Tag(uint32_t field, uint32_t type) {
   return uint64_t{field} << 3 | type;
@@ -306,18 +333,23 @@ bool ChunkCursor::NextBytes(std::string* bytes) {
     return cut.end - start_;  // the continued row's part
   };
   const uint64_t num_offsets = 1 + cut.rows + (cut.continues ? 1 : 0);
+  // Raw pointers: the writes below go through char*, which may alias
+  // anything, so vector members would be reloaded for every value.
+  const uint32_t* const ids = lists_.ids.data();
+  const uint64_t* const client = client_ids_ ? client_ids_->data() : nullptr;
+  // Offsets within a chunk are below results_per_chunk (< 2^32).
   size_t offsets_bytes = 0;
   for (uint64_t k = 0; k < num_offsets; ++k) {
-    offsets_bytes += VarintSize(offset_at(k));
+    offsets_bytes += VarintSize32(static_cast<uint32_t>(offset_at(k)));
   }
   size_t ids_bytes = 0, client_bytes = 0, truncated_bytes = 0;
-  if (client_ids_ != nullptr) {
+  if (client != nullptr) {
     for (uint64_t k = start_; k < cut.end; ++k) {
-      client_bytes += VarintSize((*client_ids_)[lists_.ids[k]]);
+      client_bytes += VarintSize(client[ids[k]]);
     }
   } else {
     for (uint64_t k = start_; k < cut.end; ++k) {
-      ids_bytes += VarintSize(lists_.ids[k]);
+      ids_bytes += VarintSize32(ids[k]);
     }
   }
   for (uint64_t k = 0; k < cut.rows; ++k) {
@@ -330,17 +362,17 @@ bool ChunkCursor::NextBytes(std::string* bytes) {
                       PackedSize(6, truncated_bytes) +
                       ScalarSize(7, total_rows_) + PackedSize(8, client_bytes) +
                       (cut.continues ? 2 : 0);
-  bytes->resize(size);
+  bytes->resize(size + kVarintSlack);
   char* p = bytes->data();
   p = PutScalar(p, 1, step_);
   p = PutScalar(p, 2, first_row);
   p = PutPackedHeader(p, 3, offsets_bytes);
-  for (uint64_t k = 0; k < num_offsets; ++k) p = PutVarint(p, offset_at(k));
+  for (uint64_t k = 0; k < num_offsets; ++k) {
+    p = PutVarint32(p, static_cast<uint32_t>(offset_at(k)));
+  }
   if (ids_bytes > 0) {
     p = PutPackedHeader(p, 4, ids_bytes);
-    for (uint64_t k = start_; k < cut.end; ++k) {
-      p = PutVarint(p, lists_.ids[k]);
-    }
+    for (uint64_t k = start_; k < cut.end; ++k) p = PutVarint32(p, ids[k]);
   }
   if (distance_bytes > 0) {
     p = PutPackedHeader(p, 5, distance_bytes);
@@ -359,7 +391,7 @@ bool ChunkCursor::NextBytes(std::string* bytes) {
   if (client_bytes > 0) {
     p = PutPackedHeader(p, 8, client_bytes);
     for (uint64_t k = start_; k < cut.end; ++k) {
-      p = PutVarint(p, (*client_ids_)[lists_.ids[k]]);
+      p = PutVarint(p, client[ids[k]]);
     }
   }
   if (cut.continues) {
@@ -368,6 +400,7 @@ bool ChunkCursor::NextBytes(std::string* bytes) {
   }
   assert(p == bytes->data() + size);
   (void)p;
+  bytes->resize(size);  // drops the slack; keeps the buffer
   Advance(cut);
   return true;
 }

@@ -139,5 +139,34 @@ TEST(ChunkCursor, BytesAreTheQueryResponsesOfTheRows) {
   for (const Case& c : cases) Check(c, seed++);
 }
 
+// Ids at every varint length boundary (1 to 5 bytes), each written as
+// protobuf writes it.
+TEST(ChunkCursor, IdsAtVarintLengthBoundaries) {
+  core::NeighborLists l;
+  l.offsets.push_back(0);
+  for (int bits = 0; bits <= 32; ++bits) {
+    const uint64_t at = uint64_t{1} << bits;
+    for (uint64_t id : {at - 1, at, at + 1}) {
+      if (id > UINT32_MAX) continue;
+      l.ids.push_back(static_cast<uint32_t>(id));
+      l.distances.push_back(static_cast<double>(id));
+    }
+    l.offsets.push_back(l.ids.size());
+    l.truncated.push_back(0);
+  }
+  const uint64_t rows = l.offsets.size() - 1;
+  ChunkCursor cursor(l, rows, 0, rows, 7, true, nullptr, 16384, 196608);
+  std::string bytes;
+  ASSERT_TRUE(cursor.NextBytes(&bytes));
+  v1::QueryResponse want;
+  want.set_step(7);
+  want.set_total_rows(rows);
+  want.mutable_offsets()->Add(l.offsets.begin(), l.offsets.end());
+  want.mutable_ids()->Add(l.ids.begin(), l.ids.end());
+  want.mutable_distances()->Add(l.distances.begin(), l.distances.end());
+  EXPECT_EQ(bytes, want.SerializeAsString());
+  EXPECT_FALSE(cursor.NextBytes(&bytes));
+}
+
 }  // namespace
 }  // namespace kinetri::server
