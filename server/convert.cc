@@ -336,14 +336,15 @@ bool ChunkCursor::NextBytes(std::string* bytes) {
   // Raw pointers: the writes below go through char*, which may alias
   // anything, so vector members would be reloaded for every value.
   const uint32_t* const ids = lists_.ids.data();
-  const uint64_t* const client = client_ids_ ? client_ids_->data() : nullptr;
+  const bool by_client = client_ids_ != nullptr;
+  const uint64_t* const client = by_client ? client_ids_->data() : nullptr;
   // Offsets within a chunk are below results_per_chunk (< 2^32).
   size_t offsets_bytes = 0;
   for (uint64_t k = 0; k < num_offsets; ++k) {
     offsets_bytes += VarintSize32(static_cast<uint32_t>(offset_at(k)));
   }
   size_t ids_bytes = 0, client_bytes = 0, truncated_bytes = 0;
-  if (client != nullptr) {
+  if (by_client) {
     for (uint64_t k = start_; k < cut.end; ++k) {
       client_bytes += VarintSize(client[ids[k]]);
     }
