@@ -9,6 +9,8 @@
 #include <sstream>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/string_view.h"
+#include "client/cpp/answer_reader.h"
 
 namespace kinetri {
 
@@ -23,6 +25,16 @@ namespace {
 std::string Env(const char* name) {
   const char* v = std::getenv(name);
   return v != nullptr ? v : "";
+}
+
+// "/kinetri.v1.KinetriService/<method>", alive for the process (an
+// RpcMethod keeps the pointer).
+const char* MethodName(absl::string_view method) {
+  static const auto* const names = new std::vector<std::string>{
+      absl::StrCat("/", v1::KinetriService::service_full_name(), "/Query"),
+      absl::StrCat("/", v1::KinetriService::service_full_name(),
+                   "/StreamQuery")};
+  return method == "Query" ? (*names)[0].c_str() : (*names)[1].c_str();
 }
 
 absl::StatusOr<std::string> ReadFile(const std::string& path,
@@ -108,6 +120,12 @@ Client::Client(const std::string& target, size_t chunk_points,
   }
   channel_ = grpc::CreateCustomChannel(target, credentials, args);
   stub_ = v1::KinetriService::NewStub(channel_);
+  query_method_ = std::make_unique<grpc::internal::RpcMethod>(
+      MethodName("Query"), grpc::internal::RpcMethod::SERVER_STREAMING,
+      channel_);
+  stream_query_method_ = std::make_unique<grpc::internal::RpcMethod>(
+      MethodName("StreamQuery"), grpc::internal::RpcMethod::BIDI_STREAMING,
+      channel_);
 }
 
 void Client::Prepare(grpc::ClientContext* ctx,
@@ -220,49 +238,18 @@ namespace {
 // Reads a query's answer (Query or StreamQuery) into CSR rows.
 template <typename Reader>
 absl::StatusOr<Neighbors> ReadAnswer(Reader* reader, grpc::ClientContext* ctx) {
-  Neighbors out;
-  out.offsets.push_back(0);
-  v1::QueryResponse chunk;
-  bool first = true;
-  bool continues = false;  // the last row goes on in this chunk
+  AnswerReader answer;
+  grpc::ByteBuffer chunk;
   while (reader->Read(&chunk)) {
-    // Every chunk of one answer comes from the same step, rows in order.
-    if (!first && chunk.step() != out.step) {
+    if (absl::Status s = answer.Append(chunk); !s.ok()) {
       ctx->TryCancel();
       reader->Finish();
-      return absl::InternalError(absl::StrCat("query answer mixes steps ",
-                                              out.step, " and ", chunk.step()));
-    }
-    // A row split across chunks continues where it left off: its end
-    // offset is replaced, not followed.
-    if (continues) out.offsets.pop_back();
-    if (chunk.first_row() != out.offsets.size() - 1) {
-      ctx->TryCancel();
-      reader->Finish();
-      return absl::InternalError(absl::StrCat("query chunk starts at row ",
-                                              chunk.first_row(), ", expected ",
-                                              out.offsets.size() - 1));
-    }
-    first = false;
-    continues = chunk.last_row_continues();
-    out.step = chunk.step();
-    const uint64_t base = out.ids.size() + out.client_ids.size();
-    const uint64_t row0 = out.offsets.size() - 1;
-    for (int i = 1; i < chunk.offsets_size(); ++i) {
-      out.offsets.push_back(base + chunk.offsets(i));
-    }
-    out.ids.insert(out.ids.end(), chunk.ids().begin(), chunk.ids().end());
-    out.client_ids.insert(out.client_ids.end(), chunk.client_ids().begin(),
-                          chunk.client_ids().end());
-    out.distances.insert(out.distances.end(), chunk.distances().begin(),
-                         chunk.distances().end());
-    for (uint32_t r : chunk.truncated_rows()) {
-      out.truncated_rows.push_back(row0 + r);
+      return s;
     }
   }
   const grpc::Status st = reader->Finish();
   if (!st.ok()) return FromGrpc(st);
-  return out;
+  return std::move(answer).Take();
 }
 
 }  // namespace
@@ -280,12 +267,18 @@ absl::StatusOr<Neighbors> Client::Query(const v1::QueryRequest& request) {
                                    request.point_ids().client_ids_size()
                              : 0;
   if (targets <= per) {
-    auto reader = stub_->Query(&ctx, request);
+    std::unique_ptr<grpc::ClientReader<grpc::ByteBuffer>> reader(
+        grpc::internal::ClientReaderFactory<grpc::ByteBuffer>::Create(
+            channel_.get(), *query_method_, &ctx, request));
     return ReadAnswer(reader.get(), &ctx);
   }
   // More targets than one message should carry: StreamQuery, the query
   // and its first targets first, the rest in messages of `per` values.
-  auto stream = stub_->StreamQuery(&ctx);
+  std::unique_ptr<grpc::ClientReaderWriter<v1::QueryRequest, grpc::ByteBuffer>>
+      stream(grpc::internal::ClientReaderWriterFactory<
+             v1::QueryRequest, grpc::ByteBuffer>::Create(channel_.get(),
+                                                         *stream_query_method_,
+                                                         &ctx));
   for (size_t i = 0; i < targets; i += per) {
     const size_t end = std::min(targets, i + per);
     v1::QueryRequest part;

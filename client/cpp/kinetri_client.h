@@ -190,6 +190,10 @@ class Client {
   std::string token_;
   std::shared_ptr<grpc::Channel> channel_;
   std::unique_ptr<v1::KinetriService::Stub> stub_;
+  // Query and StreamQuery with the answer's chunks as bytes (decoded by
+  // AnswerReader instead of protobuf's parser).
+  std::unique_ptr<const grpc::internal::RpcMethod> query_method_;
+  std::unique_ptr<const grpc::internal::RpcMethod> stream_query_method_;
   size_t chunk_points_;
 };
 
