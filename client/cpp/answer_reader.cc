@@ -269,6 +269,7 @@ absl::Status AnswerReader::Append(absl::string_view chunk) {
           const size_t bytes =
               static_cast<size_t>((type == kFixed64 ? p : body_end) - body);
           if (bytes % 8 != 0) return Malformed("packed doubles");
+          if (bytes == 0) break;
           const size_t old = out_.distances.size();
           out_.distances.resize(old + bytes / 8);
           std::memcpy(out_.distances.data() + old, body, bytes);

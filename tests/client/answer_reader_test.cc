@@ -57,9 +57,14 @@ void ExpectSame(const Neighbors& a, const Neighbors& b) {
   EXPECT_EQ(a.ids, b.ids);
   EXPECT_EQ(a.client_ids, b.client_ids);
   EXPECT_EQ(a.truncated_rows, b.truncated_rows);
+  // Bit for bit (NaNs included).
   ASSERT_EQ(a.distances.size(), b.distances.size());
-  EXPECT_EQ(0, std::memcmp(a.distances.data(), b.distances.data(),
-                           8 * a.distances.size()));
+  for (size_t i = 0; i < a.distances.size(); ++i) {
+    uint64_t x, y;
+    std::memcpy(&x, &a.distances[i], 8);
+    std::memcpy(&y, &b.distances[i], 8);
+    ASSERT_EQ(x, y) << "distance " << i;
+  }
 }
 
 // A value of 1 to `max_bytes` varint bytes, each length about as likely.
@@ -323,6 +328,20 @@ TEST(AnswerReader, Uint32FieldsKeepTheLow32BitsOfLongerVarints) {
   EXPECT_EQ(reader.rows().ids,
             (std::vector<uint32_t>{parsed.ids(0), parsed.ids(1)}));
   EXPECT_EQ(reader.rows().ids, (std::vector<uint32_t>{5, 7}));
+}
+
+TEST(AnswerReader, EmptyPackedFieldsAddNothing) {
+  // Legal, if no writer of ours sends them: packed fields of 0 bytes.
+  const std::string bytes("\x1a\x00\x22\x00\x2a\x00\x32\x00\x42\x00", 10);
+  v1::QueryResponse parsed;
+  ASSERT_TRUE(parsed.ParseFromString(bytes));
+  AnswerReader reader;
+  ASSERT_TRUE(reader.Append(bytes).ok());
+  EXPECT_EQ(reader.rows().offsets, std::vector<uint64_t>{0});
+  EXPECT_TRUE(reader.rows().ids.empty());
+  EXPECT_TRUE(reader.rows().distances.empty());
+  EXPECT_TRUE(reader.rows().client_ids.empty());
+  EXPECT_TRUE(reader.rows().truncated_rows.empty());
 }
 
 TEST(AnswerReader, MalformedBytesAreRejected) {
