@@ -210,11 +210,13 @@ int main(int argc, char** argv) {
     if (opt.executor == kinetri::core::Executor::kDevice) {
       std::printf(
           "  device: %.1f MB across the bus in %.3f s, %llu device "
-          "algorithms (%llu waited for), %llu resyncs\n",
+          "algorithms (%llu waited for), %llu resyncs, %llu passes over "
+          "the host mesh\n",
           double(rep->transfer_bytes) * 1e-6, rep->transfer_seconds,
           (unsigned long long)rep->device_calls,
           (unsigned long long)rep->device_waits,
-          (unsigned long long)rep->device_resyncs);
+          (unsigned long long)rep->device_resyncs,
+          (unsigned long long)rep->device_fingerprint_passes);
     }
     std::fflush(stdout);
   }

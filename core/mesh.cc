@@ -9,6 +9,16 @@
 
 namespace kinetri::core {
 
+uint64_t ContentStamp::number() const {
+  static std::atomic<uint64_t> last{0};
+  if (touched_.load(std::memory_order_acquire)) {
+    number_.store(last.fetch_add(1, std::memory_order_relaxed) + 1,
+                  std::memory_order_relaxed);
+    touched_.store(false, std::memory_order_release);
+  }
+  return number_.load(std::memory_order_relaxed);
+}
+
 Mesh::Mesh(uint32_t num_vertices, std::vector<uint32_t> origin,
            std::vector<uint32_t> twin, Layout layout)
     : num_vertices_(num_vertices),
@@ -21,6 +31,7 @@ Mesh::Mesh(uint32_t num_vertices, std::vector<uint32_t> origin,
 void Mesh::SwapArrays(std::vector<uint32_t>* origin,
                       std::vector<uint32_t>* twin,
                       std::vector<uint32_t>* vertex_edge) {
+  stamp_.Touch();
   origin_.swap(*origin);
   twin_.swap(*twin);
   vertex_edge_.swap(*vertex_edge);
@@ -87,6 +98,7 @@ uint64_t Mesh::FingerprintSums::Combine() const {
 uint64_t Mesh::Fingerprint() const { return FingerprintParts().Combine(); }
 
 void Mesh::RebuildVertexEdges() {
+  stamp_.Touch();
   vertex_edge_.assign(num_vertices_, kNoEdge);
   uint32_t* ve = vertex_edge_.data();
   const uint32_t* org = origin_.data();
@@ -103,6 +115,7 @@ void Mesh::RebuildVertexEdges() {
 }
 
 void Mesh::RenumberVertices(const std::vector<uint32_t>& new_of_old) {
+  stamp_.Touch();
   uint32_t* org = origin_.data();
   ParallelFor(0, origin_.size(), [&](size_t e) {
     if (org[e] != kInfiniteVertex && org[e] != kNoVertex) {
@@ -113,11 +126,13 @@ void Mesh::RenumberVertices(const std::vector<uint32_t>& new_of_old) {
 }
 
 void Mesh::ResizeVertices(uint32_t num_vertices) {
+  stamp_.Touch();
   num_vertices_ = num_vertices;
   vertex_edge_.resize(num_vertices_, kNoEdge);
 }
 
 void Mesh::RelabelVertex(uint32_t from, uint32_t to) {
+  stamp_.Touch();
   const uint32_t e0 = vertex_edge_[from];
   if (e0 != kNoEdge) {
     uint32_t e = e0;
@@ -136,6 +151,7 @@ void Mesh::SortTrianglesByVertex() {
 }
 
 void Mesh::SortTriangles() {
+  stamp_.Touch();
   const uint32_t nt = num_triangles();
   // Each triangle is keyed by its smallest vertex (the infinite vertex
   // counts as the largest) and turned so that this vertex comes first; the
@@ -200,6 +216,7 @@ void Mesh::SortTriangles() {
 }
 
 void Mesh::UpdateVertexEdgesAfterFlip(uint32_t e) {
+  stamp_.Touch();
   const uint32_t f = twin_[e];
   for (uint32_t h : {e, Next(e), Prev(e), f, Next(f), Prev(f)}) {
     const uint32_t v = origin_[h];
@@ -208,6 +225,7 @@ void Mesh::UpdateVertexEdgesAfterFlip(uint32_t e) {
 }
 
 uint32_t Mesh::AllocateTriangle() {
+  stamp_.Touch();
   if (!free_.empty()) {
     const uint32_t t = free_.back();
     free_.pop_back();
@@ -220,6 +238,7 @@ uint32_t Mesh::AllocateTriangle() {
 }
 
 void Mesh::FreeTriangle(uint32_t t) {
+  stamp_.Touch();
   for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
     origin_[e] = kNoVertex;
     twin_[e] = kNoEdge;
@@ -228,6 +247,7 @@ void Mesh::FreeTriangle(uint32_t t) {
 }
 
 void Mesh::Compact() {
+  stamp_.Touch();
   std::sort(free_.begin(), free_.end());
   size_t lo = 0;
   uint32_t last = num_triangles();

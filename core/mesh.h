@@ -36,6 +36,7 @@
 #ifndef KINETRI_CORE_MESH_H_
 #define KINETRI_CORE_MESH_H_
 
+#include <atomic>
 #include <cstddef>
 #include <cstdint>
 #include <vector>
@@ -130,6 +131,51 @@ struct MeshView {
   }
 };
 
+// Names the contents of an owning object by a number unique in the
+// process, renewed after any access that may write: two objects with the
+// same number() have equal contents. Touch() at every such access (cheap
+// where it repeats: a load once the stamp is marked); number() gives the
+// next number of the process when something touched it since the last
+// call. A copy keeps the number (its contents are equal); a moved-from
+// object is touched (its contents are gone). number() must not run
+// concurrently with a writer of the object.
+class ContentStamp {
+ public:
+  ContentStamp() = default;
+  ContentStamp(const ContentStamp& other) { CopyFrom(other); }
+  ContentStamp& operator=(const ContentStamp& other) {
+    CopyFrom(other);
+    return *this;
+  }
+  ContentStamp(ContentStamp&& other) noexcept {
+    CopyFrom(other);
+    other.Touch();
+  }
+  ContentStamp& operator=(ContentStamp&& other) noexcept {
+    if (this != &other) {
+      CopyFrom(other);
+      other.Touch();
+    }
+    return *this;
+  }
+  void Touch() {
+    if (!touched_.load(std::memory_order_relaxed)) {
+      touched_.store(true, std::memory_order_relaxed);
+    }
+  }
+  uint64_t number() const;
+
+ private:
+  void CopyFrom(const ContentStamp& other) {
+    number_.store(other.number_.load(std::memory_order_relaxed),
+                  std::memory_order_relaxed);
+    touched_.store(other.touched_.load(std::memory_order_relaxed),
+                   std::memory_order_relaxed);
+  }
+  mutable std::atomic<uint64_t> number_{0};
+  mutable std::atomic<bool> touched_{true};
+};
+
 // Owning mesh. Vertices are 0..num_vertices-1 plus kInfiniteVertex.
 class Mesh {
  public:
@@ -144,10 +190,14 @@ class Mesh {
   Mesh(uint32_t num_vertices, std::vector<uint32_t> origin,
        std::vector<uint32_t> twin, Layout layout = Layout::kAsGiven);
 
+  // A view that may write: the mesh's content_version() changes.
   MeshView view() {
+    stamp_.Touch();
     return MeshView{origin_.data(), twin_.data(),
                     static_cast<uint32_t>(origin_.size())};
   }
+  // The same view for reading only: writing through it, which the type
+  // does not prevent, would go unseen by content_version().
   MeshView view() const {
     return MeshView{const_cast<uint32_t*>(origin_.data()),
                     const_cast<uint32_t*>(twin_.data()),
@@ -162,12 +212,23 @@ class Mesh {
   const std::vector<uint32_t>& origin() const { return origin_; }
   const std::vector<uint32_t>& twin() const { return twin_; }
   const std::vector<uint32_t>& vertex_edge() const { return vertex_edge_; }
-  std::vector<uint32_t>& mutable_vertex_edge() { return vertex_edge_; }
+  std::vector<uint32_t>& mutable_vertex_edge() {
+    stamp_.Touch();
+    return vertex_edge_;
+  }
+
+  // A number naming the mesh's contents (ContentStamp): equal numbers,
+  // equal meshes. Every non-const member renews it, view() included, so a
+  // view taken before a call of this must not write after it (take a new
+  // one). The device executor skips its pass over the host mesh while the
+  // number is the one its copy was made from.
+  uint64_t content_version() const { return stamp_.number(); }
 
   // Sets one half-edge's origin and twin (the device executor applies the
   // half-edges an attempt changed this way; with mutable_vertex_edge(), for
   // the vertices).
   void SetHalfEdge(uint32_t e, uint32_t origin, uint32_t twin) {
+    stamp_.Touch();
     origin_[e] = origin;
     twin_[e] = twin;
   }
@@ -190,7 +251,10 @@ class Mesh {
   size_t num_free_triangles() const { return free_.size(); }
   // Undoes the FreeTriangle calls made since there were `count` free slots
   // (the caller restores their contents).
-  void TakeBackFreed(size_t count) { free_.resize(count); }
+  void TakeBackFreed(size_t count) {
+    stamp_.Touch();
+    free_.resize(count);
+  }
   // Moves the last triangles into free slots so that none remain.
   void Compact();
 
@@ -247,6 +311,7 @@ class Mesh {
   std::vector<uint32_t> twin_;
   std::vector<uint32_t> vertex_edge_;
   std::vector<uint32_t> free_;
+  ContentStamp stamp_;
 };
 
 }  // namespace kinetri::core

@@ -631,6 +631,7 @@ absl::Status Triangulation::AttemptOnDevice(
   report->device_loop_rounds += a->loop_rounds;
   report->device_loop_returns += a->loop_returns;
   report->device_resyncs += a->resyncs;
+  report->device_fingerprint_passes += a->fingerprint_passes;
   if (a->cancelled) {
     *result = -1;
   } else if (a->tangled) {

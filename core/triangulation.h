@@ -169,6 +169,10 @@ struct StepReport {
   // back (DeviceAttempt::resyncs; always 0 unless the update driver forgot
   // an Invalidate(): tests check it).
   uint64_t device_resyncs = 0;
+  // Device executor: attempts that checked the host mesh by a pass over it
+  // (DeviceAttempt::fingerprint_passes): the first of a session, and those
+  // after a change on the host (re-insertion, rebuild, renumbering).
+  uint64_t device_fingerprint_passes = 0;
 };
 
 class Triangulation {

@@ -12,13 +12,14 @@
 // the same mark-free searches of core/query_search.h on every backend).
 //
 // The executor owns a device copy of the mesh that lives across steps: after
-// a successful attempt the device and host meshes are equal and the next
-// step uploads only positions: the entries that changed since the last
-// attempt when they are at most a quarter, else all of them. Whoever changes
-// the host mesh otherwise (re-insertion, rebuild, renumbering) calls
-// Invalidate(); the next attempt uploads it again. Hold-back decisions,
-// re-insertion and rebuilds stay on the host (Triangulation), with explicit
-// transfers that the attempt reports.
+// a successful attempt the device and host meshes are equal (checked by the
+// mesh's content_version(), without a pass over it, unless something wrote
+// to it since) and the next step uploads only positions: the entries that
+// changed since the last attempt when they are at most a quarter, else all of
+// them. Whoever changes the host mesh otherwise (re-insertion, rebuild,
+// renumbering) calls Invalidate(); the next attempt uploads it again. Hold-back
+// decisions, re-insertion and rebuilds stay on the host (Triangulation), with
+// explicit transfers that the attempt reports.
 #ifndef KINETRI_CORE_DEVICE_DEVICE_EXECUTOR_H_
 #define KINETRI_CORE_DEVICE_DEVICE_EXECUTOR_H_
 
@@ -83,6 +84,11 @@ struct DeviceAttempt {
   // by the mesh's fingerprint and uploaded the mesh again, so the attempt
   // is still exact).
   uint32_t resyncs = 0;
+  // 1 when the attempt checked the host mesh by a pass over it
+  // (Mesh::Fingerprint): its first attempt, or after Invalidate() or a
+  // change of the mesh's content_version(). 0 when the host mesh is known
+  // to be the device's copy (nothing wrote to it since).
+  uint32_t fingerprint_passes = 0;
 };
 
 // How the device executor runs the tail of legalizing, where rounds are

@@ -522,6 +522,8 @@ TEST(DeviceExecutor, AMeshChangedBehindItsBackIsUploadedAgain) {
     const auto again = AgainAsAFreshExecutor(**a, m, pts, where);
     ASSERT_TRUE(again.has_value());
     EXPECT_EQ(again->resyncs, tell ? 0u : 1u) << where;
+    // The host wrote: the attempt checked the mesh by a pass over it.
+    EXPECT_EQ(again->fingerprint_passes, 1u) << where;
     ASSERT_TRUE(again->fixed) << where;
     EXPECT_GE(again->counts.delaunay, 1u) << where;
     EXPECT_EQ(EdgeSet(m), EdgeSet(BuildDelaunayWithCgal(pts, sites))) << round;
@@ -529,7 +531,78 @@ TEST(DeviceExecutor, AMeshChangedBehindItsBackIsUploadedAgain) {
     auto still = (*a)->Attempt(m, pts, {}, nullptr, nullptr, 0.5, nullptr);
     ASSERT_TRUE(still.ok() && still->fixed) << still.status();
     EXPECT_EQ(still->resyncs, 0u) << round;
+    // ... and it knows so without a pass over the host mesh.
+    EXPECT_EQ(still->fingerprint_passes, 0u) << round;
   }
+  // A writing view that writes nothing costs the pass, not an upload.
+  (void)m.view();
+  auto viewed = (*a)->Attempt(m, pts, {}, nullptr, nullptr, 0.5, nullptr);
+  ASSERT_TRUE(viewed.ok() && viewed->fixed) << viewed.status();
+  EXPECT_EQ(viewed->fingerprint_passes, 1u);
+  EXPECT_EQ(viewed->resyncs, 0u);
+  EXPECT_EQ(viewed->bytes_uploaded, 0u);
+  // A copy of the mesh (equal contents, the same content_version()) is
+  // the device's copy too; once it writes, it is checked and uploaded.
+  Mesh copy = m;
+  auto on_copy = (*a)->Attempt(copy, pts, {}, nullptr, nullptr, 0.5, nullptr);
+  ASSERT_TRUE(on_copy.ok() && on_copy->fixed) << on_copy.status();
+  EXPECT_EQ(on_copy->fingerprint_passes, 0u);
+  const uint32_t e = [&] {
+    const MeshView v = copy.view();
+    for (uint32_t e = 0; e < v.num_half_edges; ++e) {
+      const uint32_t f = v.twin[e];
+      if (v.IsGhost(e / 3) || v.IsGhost(f / 3)) continue;
+      const Vec2 &pa = pts[v.origin[e]], &pb = pts[v.Dest(e)],
+                 &pc = pts[v.Apex(e)], &pd = pts[v.Across(e)];
+      if (Orient2d(pc, pd, pa) < 0 && Orient2d(pd, pc, pb) < 0) return e;
+    }
+    return kNoEdge;
+  }();
+  ASSERT_NE(e, kNoEdge);
+  copy.view().Flip(e);
+  copy.RebuildVertexEdges();
+  auto changed = (*a)->Attempt(copy, pts, {}, nullptr, nullptr, 0.5, nullptr);
+  ASSERT_TRUE(changed.ok() && changed->fixed) << changed.status();
+  EXPECT_EQ(changed->fingerprint_passes, 1u);
+  EXPECT_EQ(changed->resyncs, 1u);
+  EXPECT_EQ(EdgeSet(copy), EdgeSet(BuildDelaunayWithCgal(pts, sites)));
+}
+
+// A session's steps check the host mesh by a pass over it only after the
+// host changed it (its first step, re-insertions, rebuilds, renumbering,
+// held vertices moved on the host): steps that stay on the device do not.
+TEST(DeviceExecutor, StepsOnTheDeviceDoNotPassOverTheHostMesh) {
+  const size_t n = 3000;
+  std::mt19937_64 rng(61);
+  TriangulationOptions o = DeviceOptions();
+  auto t = Triangulation::Create(testing::UniformPoints(n, 61), o);
+  ASSERT_TRUE(t.ok()) << t.status();
+  const double sigma = 0.02 / std::sqrt(double(n));
+  uint64_t steps_on_device = 0;
+  bool host_changed = true;  // the first step uploads the mesh
+  for (int s = 0; s < 12; ++s) {
+    auto r = t->ApplyDisplacements(Brownian(n, sigma, rng));
+    ASSERT_TRUE(r.ok()) << r.status();
+    const std::string where = "step " + std::to_string(s);
+    EXPECT_EQ(r->device_resyncs, 0u) << where;
+    ASSERT_GT(r->device_calls, 0u) << where;
+    if (!host_changed) {
+      // Every attempt of the step (split ones and those that move held
+      // vertices included) found the device's copy by the number.
+      EXPECT_EQ(r->device_fingerprint_passes, 0u) << where;
+      ++steps_on_device;
+    } else {
+      EXPECT_GE(r->device_fingerprint_passes, 1u) << where;
+    }
+    host_changed = r->path == UpdatePath::kReinserted ||
+                   r->path == UpdatePath::kRebuilt || r->reinserted > 0 ||
+                   r->renumbered;
+    ASSERT_TRUE(t->Validate().ok()) << where << t->Validate();
+    EXPECT_EQ(testing::EdgesAsPositions(*t),
+              testing::CgalDelaunayEdges(t->Positions()))
+        << where;
+  }
+  EXPECT_GE(steps_on_device, 6u);
 }
 
 // A query whose device call fails is refused with RESOURCE_EXHAUSTED or

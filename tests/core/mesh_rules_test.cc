@@ -200,6 +200,83 @@ TEST(Mesh, FingerprintSumsFollowChangedEntries) {
   EXPECT_NE(sums.Combine(), before.Fingerprint());
 }
 
+// content_version() names the contents: reading keeps it, every member
+// that may write renews it (the device executor skips its pass over the
+// host mesh while it is unchanged), a copy keeps it while it equals the
+// original, and a moved-from mesh gets a new one.
+TEST(Mesh, ContentVersionChangesWithEveryWritingAccess) {
+  const auto pts = testing::UniformPoints(500, 7);
+  Mesh mesh = BuildDelaunayWithCgal(pts, AllSites(pts.size()));
+  const uint64_t v0 = mesh.content_version();
+  EXPECT_NE(v0, 0u);
+  // Reading: const members, a const view, a fingerprint.
+  const Mesh& reader = mesh;
+  (void)reader.view().Dest(0);
+  (void)reader.origin();
+  (void)reader.vertex_edge();
+  (void)reader.Fingerprint();
+  EXPECT_EQ(mesh.content_version(), v0);
+  // Each writing access renews it, even one that writes nothing.
+  std::vector<uint64_t> seen = {v0};
+  auto renewed = [&](const char* what) {
+    const uint64_t v = mesh.content_version();
+    EXPECT_EQ(std::count(seen.begin(), seen.end(), v), 0) << what;
+    EXPECT_EQ(mesh.content_version(), v) << what << " (asked twice)";
+    seen.push_back(v);
+  };
+  (void)mesh.view();
+  renewed("view()");
+  mesh.SetHalfEdge(0, mesh.origin()[0], mesh.twin()[0]);
+  renewed("SetHalfEdge");
+  (void)mesh.mutable_vertex_edge();
+  renewed("mutable_vertex_edge");
+  const uint32_t e = InteriorEdge(mesh);
+  ASSERT_NE(e, kNoEdge);
+  {
+    const MeshView w = mesh.view();
+    w.Flip(e);
+    w.Unflip(e);
+  }
+  renewed("Flip + Unflip");
+  mesh.UpdateVertexEdgesAfterFlip(e);
+  renewed("UpdateVertexEdgesAfterFlip");
+  mesh.RebuildVertexEdges();
+  renewed("RebuildVertexEdges");
+  std::vector<uint32_t> o = mesh.origin(), t = mesh.twin(),
+                        ve = mesh.vertex_edge();
+  mesh.SwapArrays(&o, &t, &ve);
+  renewed("SwapArrays");
+  std::vector<uint32_t> touched;
+  ASSERT_TRUE(VertexOps::Remove(mesh, pts, 17, &touched, nullptr));
+  renewed("VertexOps::Remove");
+  mesh.Compact();
+  renewed("Compact");
+  mesh.SortTrianglesByVertex();
+  renewed("SortTrianglesByVertex");
+  std::vector<uint32_t> same(mesh.num_vertices());
+  std::iota(same.begin(), same.end(), 0u);
+  mesh.RenumberVertices(same);
+  renewed("RenumberVertices");
+  // A copy names the same contents until one of the two writes.
+  const uint64_t v = mesh.content_version();
+  Mesh copy = mesh;
+  EXPECT_EQ(copy.content_version(), v);
+  copy.RebuildVertexEdges();
+  EXPECT_NE(copy.content_version(), v);
+  EXPECT_EQ(mesh.content_version(), v);
+  // Moved: the new owner keeps the number, the emptied one does not.
+  Mesh moved = std::move(mesh);
+  EXPECT_EQ(moved.content_version(), v);
+  EXPECT_NE(mesh.content_version(), v);  // NOLINT(bugprone-use-after-move)
+  Mesh assigned;
+  assigned = std::move(moved);
+  EXPECT_EQ(assigned.content_version(), v);
+  EXPECT_NE(moved.content_version(), v);  // NOLINT(bugprone-use-after-move)
+  // Two meshes built apart never share a number.
+  const Mesh other = BuildDelaunayWithCgal(pts, AllSites(pts.size()));
+  EXPECT_NE(other.content_version(), assigned.content_version());
+}
+
 // Unflip undoes a flip exactly (every origin and twin), including a chain
 // of flips undone in reverse (what a stopped step does with its log).
 TEST(Mesh, UnflipUndoesFlipsInReverse) {
