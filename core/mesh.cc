@@ -9,7 +9,7 @@
 
 namespace kinetri::core {
 
-uint64_t ContentStamp::number() const {
+uint64_t Mesh::ContentStamp::number() const {
   static std::atomic<uint64_t> last{0};
   if (touched_.load(std::memory_order_acquire)) {
     number_.store(last.fetch_add(1, std::memory_order_relaxed) + 1,

@@ -131,51 +131,6 @@ struct MeshView {
   }
 };
 
-// Names the contents of an owning object by a number unique in the
-// process, renewed after any access that may write: two objects with the
-// same number() have equal contents. Touch() at every such access (cheap
-// where it repeats: a load once the stamp is marked); number() gives the
-// next number of the process when something touched it since the last
-// call. A copy keeps the number (its contents are equal); a moved-from
-// object is touched (its contents are gone). number() must not run
-// concurrently with a writer of the object.
-class ContentStamp {
- public:
-  ContentStamp() = default;
-  ContentStamp(const ContentStamp& other) { CopyFrom(other); }
-  ContentStamp& operator=(const ContentStamp& other) {
-    CopyFrom(other);
-    return *this;
-  }
-  ContentStamp(ContentStamp&& other) noexcept {
-    CopyFrom(other);
-    other.Touch();
-  }
-  ContentStamp& operator=(ContentStamp&& other) noexcept {
-    if (this != &other) {
-      CopyFrom(other);
-      other.Touch();
-    }
-    return *this;
-  }
-  void Touch() {
-    if (!touched_.load(std::memory_order_relaxed)) {
-      touched_.store(true, std::memory_order_relaxed);
-    }
-  }
-  uint64_t number() const;
-
- private:
-  void CopyFrom(const ContentStamp& other) {
-    number_.store(other.number_.load(std::memory_order_relaxed),
-                  std::memory_order_relaxed);
-    touched_.store(other.touched_.load(std::memory_order_relaxed),
-                   std::memory_order_relaxed);
-  }
-  mutable std::atomic<uint64_t> number_{0};
-  mutable std::atomic<bool> touched_{true};
-};
-
 // Owning mesh. Vertices are 0..num_vertices-1 plus kInfiniteVertex.
 class Mesh {
  public:
@@ -217,7 +172,7 @@ class Mesh {
     return vertex_edge_;
   }
 
-  // A number naming the mesh's contents (ContentStamp): equal numbers,
+  // A number naming the mesh's contents (ContentStamp below): equal numbers,
   // equal meshes. Every non-const member renews it, view() included, so a
   // view taken before a call of this must not write after it (take a new
   // one). The device executor skips its pass over the host mesh while the
@@ -305,6 +260,51 @@ class Mesh {
  private:
   // SortTrianglesByVertex without the vertex_edge refresh.
   void SortTriangles();
+
+  // Names the contents of an owning object by a number unique in the
+  // process, renewed after any access that may write: two objects with the
+  // same number() have equal contents. Touch() at every such access (cheap
+  // where it repeats: a load once the stamp is marked); number() gives the
+  // next number of the process when something touched it since the last
+  // call. A copy keeps the number (its contents are equal); a moved-from
+  // object is touched (its contents are gone). number() must not run
+  // concurrently with a writer of the object.
+  class ContentStamp {
+   public:
+    ContentStamp() = default;
+    ContentStamp(const ContentStamp& other) { CopyFrom(other); }
+    ContentStamp& operator=(const ContentStamp& other) {
+      CopyFrom(other);
+      return *this;
+    }
+    ContentStamp(ContentStamp&& other) noexcept {
+      CopyFrom(other);
+      other.Touch();
+    }
+    ContentStamp& operator=(ContentStamp&& other) noexcept {
+      if (this != &other) {
+        CopyFrom(other);
+        other.Touch();
+      }
+      return *this;
+    }
+    void Touch() {
+      if (!touched_.load(std::memory_order_relaxed)) {
+        touched_.store(true, std::memory_order_relaxed);
+      }
+    }
+    uint64_t number() const;
+
+   private:
+    void CopyFrom(const ContentStamp& other) {
+      number_.store(other.number_.load(std::memory_order_relaxed),
+                    std::memory_order_relaxed);
+      touched_.store(other.touched_.load(std::memory_order_relaxed),
+                     std::memory_order_relaxed);
+    }
+    mutable std::atomic<uint64_t> number_{0};
+    mutable std::atomic<bool> touched_{true};
+  };
 
   uint32_t num_vertices_ = 0;
   std::vector<uint32_t> origin_;
