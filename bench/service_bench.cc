@@ -63,6 +63,9 @@ ABSL_FLAG(std::string, server, "",
           "this binary)");
 ABSL_FLAG(std::string, redis, "/usr/bin/redis-server", "redis-server binary");
 ABSL_FLAG(std::string, json, "", "write the results to this JSON file");
+ABSL_FLAG(std::string, answer_encoding, "fixed",
+          "how the server sends the query answers' offsets and ids: fixed "
+          "(fixed-width fields, the C++ client's default) or varint");
 ABSL_FLAG(bool, in_process, true,
           "also run the same steps and queries on a core::Triangulation in "
           "this process (same default options, all cores), after the "
@@ -188,6 +191,15 @@ int main(int argc, char** argv) {
     std::fprintf(stderr, "need n >= 2, steps >= 1, 1 <= queries <= n\n");
     return 2;
   }
+  const std::string encoding_name = absl::GetFlag(FLAGS_answer_encoding);
+  if (encoding_name != "fixed" && encoding_name != "varint") {
+    std::fprintf(stderr, "--answer_encoding: fixed or varint, not \"%s\"\n",
+                 encoding_name.c_str());
+    return 2;
+  }
+  const kinetri::v1::AnswerEncoding encoding =
+      encoding_name == "fixed" ? kinetri::v1::ANSWER_ENCODING_FIXED
+                               : kinetri::v1::ANSWER_ENCODING_VARINT;
   const double spacing = 1.0 / std::sqrt(double(n));
   const double sigma = absl::GetFlag(FLAGS_sigma) * spacing;
   // Uniform density n per unit area: a disk of radius r holds n*pi*r^2.
@@ -330,7 +342,15 @@ int main(int argc, char** argv) {
     auto ack = (*stream)->MoveBy(dxy);
     const double k_up = Ms(t0);
     auto t1 = Clock::now();
-    auto kn = kc.WithinRadius(session->name(), qxy, r);
+    // What Client::WithinRadius sends, in the chosen answer encoding.
+    kinetri::v1::QueryRequest query;
+    query.set_session(session->name());
+    query.set_kind(kinetri::v1::QUERY_KIND_RADIUS);
+    query.set_radius(r);
+    query.set_include_distances(true);
+    query.set_encoding(encoding);
+    query.mutable_positions()->mutable_xy()->Add(qxy.begin(), qxy.end());
+    auto kn = kc.Query(query);
     const double k_q = Ms(t1);
     if (!ack.ok() || !kn.ok()) {
       std::fprintf(stderr, "kinetri: %s\n",
@@ -459,9 +479,9 @@ int main(int argc, char** argv) {
   (void)(*stream)->Finish();
   std::printf(
       "n=%d steps=%d queries/step=%d sigma=%g spacings, r=%g "
-      "(mean %g neighbours)\n",
+      "(mean %g neighbours), answers in %s encoding\n",
       n, steps, nq, absl::GetFlag(FLAGS_sigma), r,
-      absl::GetFlag(FLAGS_neighbours));
+      absl::GetFlag(FLAGS_neighbours), encoding_name.c_str());
   Report("kinetri", ks, k_total / 1000, steps);
   Report("redis", rs, r_total / 1000, steps);
   std::printf("throughput ratio kinetri/redis: %.2f\n", r_total / k_total);
@@ -482,6 +502,7 @@ int main(int argc, char** argv) {
     std::ofstream out(absl::GetFlag(FLAGS_json));
     out << "{\"n\":" << n << ",\"steps\":" << steps << ",\"queries\":" << nq
         << ",\"sigma\":" << absl::GetFlag(FLAGS_sigma) << ",\"radius\":" << r
+        << ",\"answer_encoding\":\"" << encoding_name << "\""
         << ",\"results\":[" << SeriesJson("kinetri", ks, k_total / 1000, steps)
         << "," << SeriesJson("redis", rs, r_total / 1000, steps)
         << (local ? "," + SeriesJson("library", ls, l_total / 1000, steps)

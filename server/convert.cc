@@ -212,13 +212,15 @@ ChunkCursor::ChunkCursor(const core::NeighborLists& lists, uint64_t count,
                          uint64_t global_first, uint64_t total_rows,
                          uint64_t step, bool distances,
                          const std::vector<uint64_t>* client_ids,
-                         uint64_t rows_per_chunk, uint64_t results_per_chunk)
+                         uint64_t rows_per_chunk, uint64_t results_per_chunk,
+                         v1::AnswerEncoding encoding)
     : lists_(lists),
       count_(count),
       global_first_(global_first),
       total_rows_(total_rows),
       step_(step),
       distances_(distances),
+      fixed_(encoding == v1::ANSWER_ENCODING_FIXED),
       client_ids_(client_ids),
       rows_per_chunk_(std::max<uint64_t>(rows_per_chunk, 1)),
       // Offsets within a chunk are written as 32-bit varints.
@@ -319,59 +321,73 @@ bool ChunkCursor::NextBytes(std::string* bytes) {
   const uint64_t first_row = global_first_ + row_;
   // The fields of QueryResponse in field order (as protobuf writes them):
   // 1 step, 2 first_row, 3 offsets, 4 ids, 5 distances, 6 truncated_rows,
-  // 7 total_rows, 8 client_ids, 9 last_row_continues.
+  // 7 total_rows, 8 client_ids, 9 last_row_continues, 10 fixed_offsets,
+  // 11 fixed_ids, 12 fixed_client_ids; 3, 4 and 8 (varints) or 10, 11 and
+  // 12 (fixed width) by the encoding.
   auto offset_at = [&](uint64_t k) {  // k in [0, offsets)
     if (k == 0) return uint64_t{0};
     if (k <= cut.rows) return off[row_ + k] - start_;
     return cut.end - start_;  // the continued row's part
   };
   const uint64_t num_offsets = 1 + cut.rows + (cut.continues ? 1 : 0);
+  const uint64_t results = cut.end - start_;
   // Raw pointers: the writes below go through char*, which may alias
   // anything, so vector members would be reloaded for every value.
   const uint32_t* const ids = lists_.ids.data();
   const bool by_client = client_ids_ != nullptr;
   const uint64_t* const client = by_client ? client_ids_->data() : nullptr;
   // Offsets within a chunk are below results_per_chunk (< 2^32).
-  size_t offsets_bytes = 0;
-  for (uint64_t k = 0; k < num_offsets; ++k) {
-    offsets_bytes += VarintSize(offset_at(k));
-  }
-  size_t ids_bytes = 0, client_bytes = 0, truncated_bytes = 0;
-  if (by_client) {
-    for (uint64_t k = start_; k < cut.end; ++k) {
-      client_bytes += VarintSize(client[ids[k]]);
-    }
+  size_t offsets_bytes = 0, ids_bytes = 0, client_bytes = 0;
+  if (fixed_) {
+    offsets_bytes = 4 * num_offsets;
+    (by_client ? client_bytes : ids_bytes) = (by_client ? 8 : 4) * results;
   } else {
-    for (uint64_t k = start_; k < cut.end; ++k) {
-      ids_bytes += VarintSize(ids[k]);
+    for (uint64_t k = 0; k < num_offsets; ++k) {
+      offsets_bytes += VarintSize(offset_at(k));
+    }
+    if (by_client) {
+      for (uint64_t k = start_; k < cut.end; ++k) {
+        client_bytes += VarintSize(client[ids[k]]);
+      }
+    } else {
+      for (uint64_t k = start_; k < cut.end; ++k) {
+        ids_bytes += VarintSize(ids[k]);
+      }
     }
   }
+  size_t truncated_bytes = 0;
   for (uint64_t k = 0; k < cut.rows; ++k) {
     if (lists_.truncated[row_ + k]) truncated_bytes += VarintSize(k);
   }
-  const size_t distance_bytes = distances_ ? 8 * (cut.end - start_) : 0;
-  const size_t size = ScalarSize(1, step_) + ScalarSize(2, first_row) +
-                      PackedSize(3, offsets_bytes) + PackedSize(4, ids_bytes) +
-                      PackedSize(5, distance_bytes) +
-                      PackedSize(6, truncated_bytes) +
-                      ScalarSize(7, total_rows_) + PackedSize(8, client_bytes) +
-                      (cut.continues ? 2 : 0);
+  const size_t distance_bytes = distances_ ? 8 * results : 0;
+  // The fields' numbers by the encoding.
+  const uint32_t offsets_field = fixed_ ? 10 : 3, ids_field = fixed_ ? 11 : 4,
+                 client_field = fixed_ ? 12 : 8;
+  const size_t size =
+      ScalarSize(1, step_) + ScalarSize(2, first_row) +
+      PackedSize(offsets_field, offsets_bytes) +
+      PackedSize(ids_field, ids_bytes) + PackedSize(5, distance_bytes) +
+      PackedSize(6, truncated_bytes) + ScalarSize(7, total_rows_) +
+      PackedSize(client_field, client_bytes) + (cut.continues ? 2 : 0);
   bytes->resize(size + kVarintSlack);
   char* p = bytes->data();
+  // Little-endian fixed-width values (doubles, fixed32, fixed64), as on
+  // every supported host.
+  static_assert(std::endian::native == std::endian::little);
   p = PutScalar(p, 1, step_);
   p = PutScalar(p, 2, first_row);
-  p = PutPackedHeader(p, 3, offsets_bytes);
-  for (uint64_t k = 0; k < num_offsets; ++k) {
-    p = PutVarint32(p, static_cast<uint32_t>(offset_at(k)));
-  }
-  if (ids_bytes > 0) {
-    p = PutPackedHeader(p, 4, ids_bytes);
-    for (uint64_t k = start_; k < cut.end; ++k) p = PutVarint32(p, ids[k]);
+  if (!fixed_) {
+    p = PutPackedHeader(p, 3, offsets_bytes);
+    for (uint64_t k = 0; k < num_offsets; ++k) {
+      p = PutVarint32(p, static_cast<uint32_t>(offset_at(k)));
+    }
+    if (ids_bytes > 0) {
+      p = PutPackedHeader(p, 4, ids_bytes);
+      for (uint64_t k = start_; k < cut.end; ++k) p = PutVarint32(p, ids[k]);
+    }
   }
   if (distance_bytes > 0) {
     p = PutPackedHeader(p, 5, distance_bytes);
-    // Little-endian doubles (fixed64), as on every supported host.
-    static_assert(std::endian::native == std::endian::little);
     std::memcpy(p, lists_.distances.data() + start_, distance_bytes);
     p += distance_bytes;
   }
@@ -382,7 +398,7 @@ bool ChunkCursor::NextBytes(std::string* bytes) {
     }
   }
   p = PutScalar(p, 7, total_rows_);
-  if (client_bytes > 0) {
+  if (!fixed_ && client_bytes > 0) {
     p = PutPackedHeader(p, 8, client_bytes);
     for (uint64_t k = start_; k < cut.end; ++k) {
       p = PutVarint(p, client[ids[k]]);
@@ -391,6 +407,26 @@ bool ChunkCursor::NextBytes(std::string* bytes) {
   if (cut.continues) {
     p = PutVarint(p, Tag(9, kVarint));
     *p++ = 1;
+  }
+  if (fixed_) {
+    p = PutPackedHeader(p, 10, offsets_bytes);
+    for (uint64_t k = 0; k < num_offsets; ++k) {
+      const auto v = static_cast<uint32_t>(offset_at(k));
+      std::memcpy(p, &v, 4);
+      p += 4;
+    }
+    if (ids_bytes > 0) {
+      p = PutPackedHeader(p, 11, ids_bytes);
+      std::memcpy(p, ids + start_, ids_bytes);
+      p += ids_bytes;
+    }
+    if (client_bytes > 0) {
+      p = PutPackedHeader(p, 12, client_bytes);
+      for (uint64_t k = start_; k < cut.end; ++k) {
+        std::memcpy(p, &client[ids[k]], 8);
+        p += 8;
+      }
+    }
   }
   assert(p == bytes->data() + size);
   (void)p;

@@ -74,13 +74,15 @@ v1::StepStats ToProto(const core::StepReport& report);
 // and `results_per_chunk` results: whole rows while they fit, a row with
 // more results split across chunks (last_row_continues). Each chunk is
 // built only when Next() is called (the answer is never held twice). With
-// client_ids, result ids are the client's ids.
+// client_ids, result ids are the client's ids. `encoding` picks the
+// fields of offsets and ids (v1::AnswerEncoding: varint or fixed-width).
 class ChunkCursor {
  public:
   ChunkCursor(const core::NeighborLists& lists, uint64_t count,
               uint64_t global_first, uint64_t total_rows, uint64_t step,
               bool distances, const std::vector<uint64_t>* client_ids,
-              uint64_t rows_per_chunk, uint64_t results_per_chunk);
+              uint64_t rows_per_chunk, uint64_t results_per_chunk,
+              v1::AnswerEncoding encoding = v1::ANSWER_ENCODING_VARINT);
   // Writes the next chunk, a serialized QueryResponse, into *bytes (there
   // is always a first one, possibly with no rows); false once every chunk
   // has been written. The bytes are those protobuf writes for the message
@@ -104,6 +106,7 @@ class ChunkCursor {
   const core::NeighborLists& lists_;
   const uint64_t count_, global_first_, total_rows_, step_;
   const bool distances_;
+  const bool fixed_;
   const std::vector<uint64_t>* client_ids_;
   const uint64_t rows_per_chunk_, results_per_chunk_;
   uint64_t row_ = 0;    // first row of the next chunk

@@ -848,6 +848,12 @@ grpc::Status KinetriServiceImpl::RunQuery(
       return (grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                            "kind: must be NEAREST, K_NEAREST or RADIUS"));
   }
+  if (!v1::AnswerEncoding_IsValid(req->encoding())) {
+    return (
+        grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                     absl::StrCat("encoding: unknown value ", req->encoding(),
+                                  " (UNSPECIFIED, VARINT or FIXED)")));
+  }
   std::vector<core::Vec2> positions;
   if (req->has_positions()) {
     absl::Status st =
@@ -1012,7 +1018,7 @@ grpc::Status KinetriServiceImpl::RunQuery(
       if (result.ok()) {
         chunks.emplace(*result, count, first, total_rows, snap.step,
                        req->include_distances(), cids, rows_per_chunk,
-                       results_per_chunk);
+                       results_per_chunk, req->encoding());
         encode_next();
       }
     };

@@ -37,6 +37,9 @@ enum Field : uint32_t {
   kTotalRows = 7,
   kClientIds = 8,
   kLastRowContinues = 9,
+  kFixedOffsets = 10,
+  kFixedIds = 11,
+  kFixedClientIds = 12,
 };
 
 // Reads the varint at *p (before end) and advances *p past it; false when
@@ -138,6 +141,27 @@ bool AppendPacked(const char* p, const char* end, std::vector<T>* out, F f) {
   return true;
 }
 
+// The bytes of a fixed-width field's values of `width` bytes: the one value
+// of an unpacked field (wire type `single`) or a packed run; 0 when the
+// wire type is neither (an unknown field), -1 when a packed run is not a
+// whole number of values.
+int64_t FixedBytes(uint32_t type, uint32_t single, size_t width,
+                   const char* body, const char* body_end) {
+  if (type == single) return static_cast<int64_t>(width);
+  if (type != kLengthDelimited) return 0;
+  const auto bytes = static_cast<size_t>(body_end - body);
+  return bytes % width == 0 ? static_cast<int64_t>(bytes) : -1;
+}
+
+// Appends `bytes` bytes of little-endian values at body to out.
+template <typename T>
+void AppendFixed(const char* body, size_t bytes, std::vector<T>* out) {
+  if (bytes == 0) return;
+  const size_t old = out->size();
+  out->resize(old + bytes / sizeof(T));
+  std::memcpy(out->data() + old, body, bytes);
+}
+
 absl::Status Malformed(const char* what) {
   return absl::InternalError(
       absl::StrCat("query answer: not a valid QueryResponse (", what, ")"));
@@ -173,6 +197,9 @@ absl::Status AnswerReader::Append(absl::string_view chunk) {
   const size_t offsets_before = out_.offsets.size();
   uint64_t step = 0, first_row = 0;
   bool continues = false;
+  // Values read from the varint and the fixed-width field of offsets, ids
+  // and client ids: a chunk may use one of each pair only.
+  size_t varint_values[3] = {0, 0, 0}, fixed_values[3] = {0, 0, 0};
 
   const char* p = chunk.data();
   const char* const end = p + chunk.size();
@@ -218,6 +245,8 @@ absl::Status AnswerReader::Append(absl::string_view chunk) {
     // A known field in a wire type it cannot have is unknown, as protobuf
     // has it; unknown fields are skipped.
     bool ok = true;
+    const size_t sizes[3] = {out_.offsets.size(), out_.ids.size(),
+                             out_.client_ids.size()};
     switch (field) {
       case kStep:
         if (type == kVarint) step = v;
@@ -264,21 +293,54 @@ absl::Status AnswerReader::Append(absl::string_view chunk) {
               [row0](uint64_t x) { return row0 + static_cast<uint32_t>(x); });
         }
         break;
-      case kDistances:
-        if (type == kFixed64 || type == kLengthDelimited) {
-          const size_t bytes =
-              static_cast<size_t>((type == kFixed64 ? p : body_end) - body);
-          if (bytes % 8 != 0) return Malformed("packed doubles");
-          if (bytes == 0) break;
-          const size_t old = out_.distances.size();
-          out_.distances.resize(old + bytes / 8);
-          std::memcpy(out_.distances.data() + old, body, bytes);
+      case kDistances: {
+        const int64_t bytes = FixedBytes(type, kFixed64, 8, body, body_end);
+        if (bytes < 0) return Malformed("packed doubles");
+        AppendFixed(body, static_cast<size_t>(bytes), &out_.distances);
+        break;
+      }
+      case kFixedOffsets: {
+        const int64_t bytes = FixedBytes(type, kFixed32, 4, body, body_end);
+        if (bytes < 0) return Malformed("packed fixed32 offsets");
+        const size_t n = static_cast<size_t>(bytes) / 4;
+        const size_t old = out_.offsets.size();
+        out_.offsets.resize(old + n);
+        for (size_t i = 0; i < n; ++i) {
+          uint32_t x;
+          std::memcpy(&x, body + 4 * i, 4);
+          out_.offsets[old + i] = base + x;
         }
         break;
+      }
+      case kFixedIds: {
+        const int64_t bytes = FixedBytes(type, kFixed32, 4, body, body_end);
+        if (bytes < 0) return Malformed("packed fixed32 ids");
+        AppendFixed(body, static_cast<size_t>(bytes), &out_.ids);
+        break;
+      }
+      case kFixedClientIds: {
+        const int64_t bytes = FixedBytes(type, kFixed64, 8, body, body_end);
+        if (bytes < 0) return Malformed("packed fixed64 client ids");
+        AppendFixed(body, static_cast<size_t>(bytes), &out_.client_ids);
+        break;
+      }
       default:
         break;
     }
     if (!ok) return Malformed("bad packed varints");
+    const size_t grown[3] = {out_.offsets.size() - sizes[0],
+                             out_.ids.size() - sizes[1],
+                             out_.client_ids.size() - sizes[2]};
+    for (int i = 0; i < 3; ++i) {
+      const bool fixed_field = field >= kFixedOffsets;
+      (fixed_field ? fixed_values : varint_values)[i] += grown[i];
+    }
+  }
+  for (int i = 0; i < 3; ++i) {
+    if (varint_values[i] > 0 && fixed_values[i] > 0) {
+      return Malformed(
+          "offsets, ids or client ids both as varints and fixed-width");
+    }
   }
   // The chunk's first offset (0) starts the row before it, already here.
   if (out_.offsets.size() > offsets_before) {

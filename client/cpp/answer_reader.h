@@ -7,9 +7,11 @@
 // the benchmark machine, about a third of what the service added to the
 // query. Here the packed fields go into the rows' vectors in one pass:
 // distances by one memcpy, ids and offsets by a varint decoder without a
-// branch per byte. Any valid encoding of the message is accepted (fields in
-// any order or repeated, packed or not, unknown fields skipped), malformed
-// bytes are an error, never a crash.
+// branch per byte, or, in the fixed-width fields (ANSWER_ENCODING_FIXED),
+// by one memcpy each. Any valid encoding of the message is accepted (fields
+// in any order or repeated, packed or not, unknown fields skipped);
+// malformed bytes are an error, never a crash, and so is a chunk with
+// offsets, ids or client ids in both their varint and fixed-width fields.
 #ifndef KINETRI_CLIENT_CPP_ANSWER_READER_H_
 #define KINETRI_CLIENT_CPP_ANSWER_READER_H_
 

@@ -256,6 +256,11 @@ absl::StatusOr<Neighbors> ReadAnswer(Reader* reader, grpc::ClientContext* ctx) {
 
 absl::StatusOr<Neighbors> Client::Query(const v1::QueryRequest& request) {
   if (!init_status_.ok()) return init_status_;
+  if (request.encoding() == v1::ANSWER_ENCODING_UNSPECIFIED) {
+    v1::QueryRequest fixed = request;
+    fixed.set_encoding(v1::ANSWER_ENCODING_FIXED);
+    return Query(fixed);
+  }
   grpc::ClientContext ctx;
   Prepare(&ctx, request.session());
   // Values (coordinates or ids) per message: chunk_points positions.
@@ -320,6 +325,7 @@ v1::QueryRequest Base(const std::string& name, v1::QueryKind kind) {
   r.set_session(name);
   r.set_kind(kind);
   r.set_include_distances(true);
+  r.set_encoding(v1::ANSWER_ENCODING_FIXED);
   return r;
 }
 }  // namespace

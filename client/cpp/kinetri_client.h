@@ -163,7 +163,10 @@ class Client {
 
   // Runs a query (its targets and options set by the caller) and collects
   // every chunk. Targets beyond one message (chunk_points positions or
-  // 2 x chunk_points ids) go by StreamQuery, cut into messages.
+  // 2 x chunk_points ids) go by StreamQuery, cut into messages. The answer
+  // comes in fixed-width fields (ANSWER_ENCODING_FIXED: cheaper to write
+  // and read) unless the request names an encoding; either is read.
+  // The other calls below ask for distances and fixed-width answers.
   absl::StatusOr<Neighbors> Query(const v1::QueryRequest& request);
   absl::StatusOr<Neighbors> NearestOfAll(const std::string& name);
   absl::StatusOr<Neighbors> KNearest(const std::string& name,

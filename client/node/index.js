@@ -498,11 +498,18 @@ class Client {
         continues = chunk.lastRowContinues;
         const base = out.ids.length + out.clientIds.length;
         const row0 = out.offsets.length - 1;
-        for (let i = 1; i < chunk.offsets.length; i++) {
-          out.offsets.push(base + Number(chunk.offsets[i]));
+        // Offsets and ids in their varint fields or, for requests with
+        // encoding ANSWER_ENCODING_FIXED, in the fixed-width ones.
+        const pick = (fixed, varint) =>
+          (fixed && fixed.length) ? fixed : (varint || []);
+        const offsets = pick(chunk.fixedOffsets, chunk.offsets);
+        for (let i = 1; i < offsets.length; i++) {
+          out.offsets.push(base + Number(offsets[i]));
         }
-        for (const id of chunk.ids) out.ids.push(id);
-        for (const id of chunk.clientIds) out.clientIds.push(BigInt(id));
+        for (const id of pick(chunk.fixedIds, chunk.ids)) out.ids.push(id);
+        for (const id of pick(chunk.fixedClientIds, chunk.clientIds)) {
+          out.clientIds.push(BigInt(id));
+        }
         for (const d of chunk.distances) out.distances.push(d);
         for (const r of chunk.truncatedRows) {
           out.truncatedRows.push(row0 + Number(r));

@@ -3,7 +3,8 @@
 // (canonical, unpacked, split, reordered, with unknown fields, over-long
 // varints) the rows are the ones protobuf's message gives, reassembled the
 // way the client did before; what protobuf rejects is rejected; the
-// server's chunk writer round-trips through it.
+// server's chunk writer round-trips through it. All of it in both answer
+// encodings (varint and fixed-width offsets and ids).
 #include "client/cpp/answer_reader.h"
 
 #include <gtest/gtest.h>
@@ -21,7 +22,9 @@
 namespace kinetri {
 namespace {
 
-// The client's reassembly before AnswerReader, on parsed messages.
+// The client's reassembly before AnswerReader, on parsed messages (the
+// fixed-width fields read as the varint ones; a chunk with values in both
+// fields of a pair is refused).
 struct Reference {
   Neighbors out;
   bool first = true;
@@ -29,6 +32,11 @@ struct Reference {
   Reference() { out.offsets.push_back(0); }
   bool Append(const v1::QueryResponse& chunk) {
     if (!first && chunk.step() != out.step) return false;
+    if ((chunk.offsets_size() > 0 && chunk.fixed_offsets_size() > 0) ||
+        (chunk.ids_size() > 0 && chunk.fixed_ids_size() > 0) ||
+        (chunk.client_ids_size() > 0 && chunk.fixed_client_ids_size() > 0)) {
+      return false;
+    }
     if (continues) out.offsets.pop_back();
     if (chunk.first_row() != out.offsets.size() - 1) return false;
     first = false;
@@ -39,9 +47,17 @@ struct Reference {
     for (int i = 1; i < chunk.offsets_size(); ++i) {
       out.offsets.push_back(base + chunk.offsets(i));
     }
+    for (int i = 1; i < chunk.fixed_offsets_size(); ++i) {
+      out.offsets.push_back(base + chunk.fixed_offsets(i));
+    }
     out.ids.insert(out.ids.end(), chunk.ids().begin(), chunk.ids().end());
+    out.ids.insert(out.ids.end(), chunk.fixed_ids().begin(),
+                   chunk.fixed_ids().end());
     out.client_ids.insert(out.client_ids.end(), chunk.client_ids().begin(),
                           chunk.client_ids().end());
+    out.client_ids.insert(out.client_ids.end(),
+                          chunk.fixed_client_ids().begin(),
+                          chunk.fixed_client_ids().end());
     out.distances.insert(out.distances.end(), chunk.distances().begin(),
                          chunk.distances().end());
     for (uint32_t r : chunk.truncated_rows()) {
@@ -74,22 +90,36 @@ uint64_t AnyLength(std::mt19937_64& rng, int max_bytes) {
   return bits >= 64 ? v : v & ((uint64_t{1} << bits) - 1);
 }
 
-// One chunk of `rows` rows starting at first_row, values of every length.
+// One chunk of `rows` rows starting at first_row, values of every length;
+// offsets and ids in the fixed-width fields when `fixed`.
 v1::QueryResponse RandomChunk(std::mt19937_64& rng, uint64_t step,
-                              uint64_t first_row, int rows, bool client_ids) {
+                              uint64_t first_row, int rows, bool client_ids,
+                              bool fixed = false) {
   v1::QueryResponse c;
   c.set_step(step);
   c.set_first_row(first_row);
   c.set_total_rows(first_row + rows + 5);
-  c.add_offsets(0);
+  auto add_offset = [&](uint64_t v) {
+    if (fixed) {
+      c.add_fixed_offsets(static_cast<uint32_t>(v));
+    } else {
+      c.add_offsets(v);
+    }
+  };
+  add_offset(0);
   uint64_t n = 0;
   for (int r = 0; r < rows; ++r) {
     const int len = static_cast<int>(rng() % 40);
     for (int k = 0; k < len; ++k) {
-      if (client_ids) {
-        c.add_client_ids(AnyLength(rng, 10));
+      const uint64_t id = AnyLength(rng, client_ids ? 10 : 5);
+      if (client_ids && fixed) {
+        c.add_fixed_client_ids(id);
+      } else if (client_ids) {
+        c.add_client_ids(id);
+      } else if (fixed) {
+        c.add_fixed_ids(static_cast<uint32_t>(id));
       } else {
-        c.add_ids(static_cast<uint32_t>(AnyLength(rng, 5)));
+        c.add_ids(static_cast<uint32_t>(id));
       }
       double d;
       const uint64_t bits = rng();
@@ -97,7 +127,7 @@ v1::QueryResponse RandomChunk(std::mt19937_64& rng, uint64_t step,
       c.add_distances(d);
     }
     n += static_cast<uint64_t>(len);
-    c.add_offsets(n);
+    add_offset(n);
     if (rng() % 7 == 0) c.add_truncated_rows(static_cast<uint32_t>(r));
   }
   return c;
@@ -124,7 +154,8 @@ TEST(AnswerReader, CanonicalChunksEqualProtobuf) {
     for (int i = 0; i < chunks; ++i) {
       if (continues) --row;  // the split row goes on in this chunk
       const int rows = static_cast<int>(rng() % 300);
-      v1::QueryResponse c = RandomChunk(rng, step, row, rows, client_ids);
+      v1::QueryResponse c =
+          RandomChunk(rng, step, row, rows, client_ids, rng() % 2 == 0);
       continues = rows > 0 && i + 1 < chunks && rng() % 2 == 0;
       c.set_last_row_continues(continues);
       row += static_cast<uint64_t>(rows);
@@ -214,6 +245,41 @@ std::string AnyEncoding(std::mt19937_64& rng, const v1::QueryResponse& c) {
                                                 c.truncated_rows().end())));
   lists.push_back(runs(
       8, std::vector<uint64_t>(c.client_ids().begin(), c.client_ids().end())));
+  // Fixed-width fields: packed runs and single values.
+  auto fixed_runs = [&](uint32_t field, size_t width,
+                        const std::vector<uint64_t>& vs) {
+    std::vector<std::string> field_parts;
+    size_t i = 0;
+    while (i < vs.size()) {
+      const size_t end = std::min(vs.size(), i + 1 + rng() % 50);
+      std::string p;
+      if (rng() % 3 == 0) {
+        for (size_t k = i; k < end; ++k) {
+          Tag(&p, field, width == 8 ? 1 : 5);
+          p.append(reinterpret_cast<const char*>(&vs[k]), width);
+        }
+      } else {
+        Tag(&p, field, 2);
+        Varint(&p, width * (end - i));
+        for (size_t k = i; k < end; ++k) {
+          p.append(reinterpret_cast<const char*>(&vs[k]), width);
+        }
+      }
+      field_parts.push_back(p);
+      i = end;
+    }
+    return field_parts;
+  };
+  lists.push_back(fixed_runs(10, 4,
+                             std::vector<uint64_t>(c.fixed_offsets().begin(),
+                                                   c.fixed_offsets().end())));
+  lists.push_back(fixed_runs(
+      11, 4,
+      std::vector<uint64_t>(c.fixed_ids().begin(), c.fixed_ids().end())));
+  lists.push_back(
+      fixed_runs(12, 8,
+                 std::vector<uint64_t>(c.fixed_client_ids().begin(),
+                                       c.fixed_client_ids().end())));
   {
     std::vector<std::string> d;
     int i = 0;
@@ -255,7 +321,7 @@ std::string AnyEncoding(std::mt19937_64& rng, const v1::QueryResponse& c) {
     if (open.empty() && scalar_i == merged.size()) break;
     const uint64_t pick = rng() % 8;
     if (pick == 0) {  // an unknown field
-      const uint32_t field = 10 + static_cast<uint32_t>(rng() % 100000);
+      const uint32_t field = 13 + static_cast<uint32_t>(rng() % 100000);
       switch (rng() % 4) {
         case 0:
           Tag(&out, field, 0);
@@ -295,7 +361,7 @@ TEST(AnswerReader, AnyLegalEncodingEqualsProtobuf) {
   for (int trial = 0; trial < 300; ++trial) {
     const v1::QueryResponse c =
         RandomChunk(rng, AnyLength(rng, 10), 0, static_cast<int>(rng() % 60),
-                    trial % 2 == 0);
+                    trial % 2 == 0, trial % 4 >= 2);
     const std::string bytes = AnyEncoding(rng, c);
     v1::QueryResponse parsed;
     ASSERT_TRUE(parsed.ParseFromString(bytes));
@@ -344,6 +410,54 @@ TEST(AnswerReader, EmptyPackedFieldsAddNothing) {
   EXPECT_TRUE(reader.rows().truncated_rows.empty());
 }
 
+TEST(AnswerReader, AChunkUsesOneEncodingPerField) {
+  // Offsets, ids or client ids in both their varint and their fixed-width
+  // field: no writer sends that, and which order they join in would be a
+  // guess, so it is refused; an empty field of the other encoding is not.
+  v1::QueryResponse c;
+  c.add_offsets(0);
+  c.add_offsets(2);
+  c.add_ids(4);
+  c.add_ids(5);
+  {
+    v1::QueryResponse both = c;
+    both.add_fixed_ids(6);
+    both.set_offsets(1, 3);
+    AnswerReader reader;
+    EXPECT_EQ(reader.Append(both.SerializeAsString()).code(),
+              absl::StatusCode::kInternal);
+  }
+  {
+    v1::QueryResponse both = c;
+    both.add_fixed_offsets(0);
+    AnswerReader reader;
+    EXPECT_FALSE(reader.Append(both.SerializeAsString()).ok());
+  }
+  {
+    v1::QueryResponse both;
+    both.add_fixed_offsets(0);
+    both.add_fixed_offsets(2);
+    both.add_client_ids(1);
+    both.add_fixed_client_ids(2);
+    AnswerReader reader;
+    EXPECT_FALSE(reader.Append(both.SerializeAsString()).ok());
+  }
+  {
+    // Varint offsets with fixed-width ids: one encoding per field is kept.
+    v1::QueryResponse mixed;
+    mixed.add_offsets(0);
+    mixed.add_offsets(2);
+    mixed.add_fixed_ids(7);
+    mixed.add_fixed_ids(8);
+    std::string bytes = mixed.SerializeAsString();
+    bytes += std::string("\x22\x00\x5a\x00", 4);  // empty ids, fixed ids
+    AnswerReader reader;
+    ASSERT_TRUE(reader.Append(bytes).ok());
+    EXPECT_EQ(reader.rows().offsets, (std::vector<uint64_t>{0, 2}));
+    EXPECT_EQ(reader.rows().ids, (std::vector<uint32_t>{7, 8}));
+  }
+}
+
 TEST(AnswerReader, MalformedBytesAreRejected) {
   auto rejected = [](const std::string& bytes) {
     AnswerReader reader;
@@ -364,12 +478,17 @@ TEST(AnswerReader, MalformedBytesAreRejected) {
   EXPECT_TRUE(rejected(std::string("\x2a\x03\x01\x02\x03", 5)));
   // A truncated fixed64 and fixed32.
   EXPECT_TRUE(rejected(std::string("\x29\x01\x02", 3)));
-  EXPECT_TRUE(rejected(std::string("\x55\x01", 2)));  // field 10, fixed32
+  EXPECT_TRUE(rejected(std::string("\x6d\x01", 2)));  // field 13, fixed32
+  // Packed fixed-width offsets, ids and client ids that are not whole
+  // values.
+  EXPECT_TRUE(rejected(std::string("\x52\x03\x01\x02\x03", 5)));
+  EXPECT_TRUE(rejected(std::string("\x5a\x05\x01\x02\x03\x04\x05", 7)));
+  EXPECT_TRUE(rejected(std::string("\x62\x04\x01\x02\x03\x04", 6)));
   // Field number 0, wire types 6 and 7, groups (not used by the protocol).
   EXPECT_TRUE(rejected(std::string("\x00\x01", 2)));
   EXPECT_TRUE(rejected(std::string("\x0e\x01", 2)));
   EXPECT_TRUE(rejected(std::string("\x0f\x01", 2)));
-  EXPECT_TRUE(rejected(std::string("\x53\x54", 2)));  // field 10 group
+  EXPECT_TRUE(rejected(std::string("\x6b\x6c", 2)));  // field 13 group
   // A tag whose varint never ends.
   EXPECT_TRUE(rejected(std::string("\x80", 1)));
 }
@@ -380,8 +499,8 @@ TEST(AnswerReader, EveryPrefixAndCorruptionIsSafe) {
   // rows are protobuf's.
   std::mt19937_64 rng(5);
   for (int trial = 0; trial < 40; ++trial) {
-    const v1::QueryResponse c =
-        RandomChunk(rng, 9, 0, 1 + static_cast<int>(rng() % 12), trial % 2);
+    const v1::QueryResponse c = RandomChunk(
+        rng, 9, 0, 1 + static_cast<int>(rng() % 12), trial % 2, trial % 4 >= 2);
     const std::string full = AnyEncoding(rng, c);
     for (size_t cut = 0; cut <= full.size(); ++cut) {
       std::string bytes = full.substr(0, cut);
@@ -463,8 +582,10 @@ TEST(AnswerReader, ReadsTheServersChunks) {
   // The server's writer (server/convert.h) cutting rows into chunks, split
   // rows included, with internal or client ids, read back into the rows.
   std::mt19937_64 rng(13);
-  for (int trial = 0; trial < 40; ++trial) {
+  for (int trial = 0; trial < 80; ++trial) {
     const bool by_client = trial % 2 == 1;
+    const v1::AnswerEncoding encoding =
+        trial % 4 >= 2 ? v1::ANSWER_ENCODING_FIXED : v1::ANSWER_ENCODING_VARINT;
     std::vector<uint64_t> client_map(1000);
     for (uint64_t& id : client_map) id = rng() >> (rng() % 64);
     core::NeighborLists l;
@@ -486,7 +607,7 @@ TEST(AnswerReader, ReadsTheServersChunks) {
     server::ChunkCursor cursor(l, static_cast<uint64_t>(rows), 0,
                                static_cast<uint64_t>(rows), 17, true,
                                by_client ? &client_map : nullptr,
-                               1 + rng() % 100, 1 + rng() % 200);
+                               1 + rng() % 100, 1 + rng() % 200, encoding);
     AnswerReader reader;
     std::string wire;
     while (cursor.NextBytes(&wire)) {

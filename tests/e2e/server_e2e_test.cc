@@ -963,23 +963,111 @@ TEST_F(E2eTest, RowsSplitAcrossChunks) {
     for (uint32_t id : {0u, 7u, 99u, 300u}) q.mutable_point_ids()->add_ids(id);
     auto whole = client_->Query(q);
     ASSERT_TRUE(whole.ok()) << whole.status();
-    for (const uint32_t per : {1u, 7u, 64u, 121u}) {
-      for (const uint32_t rows : {1u, 3u}) {
-        q.set_results_per_chunk(per);
-        q.set_rows_per_chunk(rows);
-        auto split = client_->Query(q);
-        ASSERT_TRUE(split.ok()) << split.status();
-        EXPECT_EQ(split->offsets, whole->offsets) << per << " " << rows;
-        EXPECT_EQ(split->ids, whole->ids) << per << " " << rows;
-        EXPECT_EQ(split->distances, whole->distances) << per << " " << rows;
-        EXPECT_EQ(split->truncated_rows, whole->truncated_rows)
-            << per << " " << rows;
+    for (const v1::AnswerEncoding encoding :
+         {v1::ANSWER_ENCODING_VARINT, v1::ANSWER_ENCODING_FIXED}) {
+      q.set_encoding(encoding);
+      for (const uint32_t per : {1u, 7u, 64u, 121u}) {
+        for (const uint32_t rows : {1u, 3u}) {
+          q.set_results_per_chunk(per);
+          q.set_rows_per_chunk(rows);
+          auto split = client_->Query(q);
+          ASSERT_TRUE(split.ok()) << split.status();
+          const std::string at = absl::StrCat(encoding, " ", per, " ", rows);
+          EXPECT_EQ(split->offsets, whole->offsets) << at;
+          EXPECT_EQ(split->ids, whole->ids) << at;
+          EXPECT_EQ(split->distances, whole->distances) << at;
+          EXPECT_EQ(split->truncated_rows, whole->truncated_rows) << at;
+        }
       }
     }
+    q.clear_encoding();
+    q.clear_results_per_chunk();
+    q.clear_rows_per_chunk();
     if (kind == v1::QUERY_KIND_RADIUS) {
       EXPECT_FALSE(whole->truncated_rows.empty());
     }
   }
+}
+
+// The server answers in the encoding asked for (read here with protobuf's
+// parser, not the client's, which reads either): varints by default,
+// fixed-width fields for ANSWER_ENCODING_FIXED, for sequential and client
+// ids; an encoding it does not know is refused.
+TEST_F(E2eTest, AnswersComeInTheAskedEncoding) {
+  const std::vector<double> xy = Uniform(300, 17);
+  std::vector<uint64_t> cid(300);
+  for (size_t i = 0; i < cid.size(); ++i) cid[i] = (uint64_t{1} << 50) + i;
+  auto seq = client_->CreateSession(xy, v1::SessionOptions(), "enc-seq");
+  ASSERT_TRUE(seq.ok()) << seq.status();
+  auto by_cid =
+      client_->CreateSessionWithIds(xy, cid, v1::SessionOptions(), "enc-cid");
+  ASSERT_TRUE(by_cid.ok()) << by_cid.status();
+  auto chunks = [&](const v1::QueryRequest& q, grpc::Status* status) {
+    grpc::ClientContext ctx;
+    client_->Prepare(&ctx, q.session());
+    auto reader = client_->stub()->Query(&ctx, q);
+    std::vector<v1::QueryResponse> out;
+    v1::QueryResponse m;
+    while (reader->Read(&m)) out.push_back(m);
+    *status = reader->Finish();
+    return out;
+  };
+  for (const bool client_ids : {false, true}) {
+    v1::QueryRequest q;
+    q.set_session(client_ids ? by_cid->name() : seq->name());
+    q.set_kind(v1::QUERY_KIND_K_NEAREST);
+    q.set_k(4);
+    q.set_include_distances(true);
+    q.mutable_all_points();
+    q.set_rows_per_chunk(70);  // several chunks
+    std::vector<std::vector<v1::QueryResponse>> answers;
+    for (const v1::AnswerEncoding encoding :
+         {v1::ANSWER_ENCODING_UNSPECIFIED, v1::ANSWER_ENCODING_VARINT,
+          v1::ANSWER_ENCODING_FIXED}) {
+      q.set_encoding(encoding);
+      grpc::Status st;
+      answers.push_back(chunks(q, &st));
+      ASSERT_TRUE(st.ok()) << st.error_message();
+      ASSERT_EQ(answers.back().size(), 5u);  // 300 rows, 70 per chunk
+      const bool fixed = encoding == v1::ANSWER_ENCODING_FIXED;
+      for (const v1::QueryResponse& m : answers.back()) {
+        EXPECT_EQ(m.offsets_size() > 0, !fixed);
+        EXPECT_EQ(m.fixed_offsets_size() > 0, fixed);
+        EXPECT_EQ(m.ids_size() > 0, !fixed && !client_ids);
+        EXPECT_EQ(m.fixed_ids_size() > 0, fixed && !client_ids);
+        EXPECT_EQ(m.client_ids_size() > 0, !fixed && client_ids);
+        EXPECT_EQ(m.fixed_client_ids_size() > 0, fixed && client_ids);
+      }
+    }
+    // The same rows in each encoding.
+    for (size_t c = 0; c < 5; ++c) {
+      const v1::QueryResponse& v = answers[1][c];
+      const v1::QueryResponse& f = answers[2][c];
+      EXPECT_EQ(answers[0][c].SerializeAsString(), v.SerializeAsString());
+      EXPECT_TRUE(std::equal(v.offsets().begin(), v.offsets().end(),
+                             f.fixed_offsets().begin(),
+                             f.fixed_offsets().end()));
+      EXPECT_TRUE(std::equal(v.ids().begin(), v.ids().end(),
+                             f.fixed_ids().begin(), f.fixed_ids().end()));
+      EXPECT_TRUE(std::equal(v.client_ids().begin(), v.client_ids().end(),
+                             f.fixed_client_ids().begin(),
+                             f.fixed_client_ids().end()));
+      EXPECT_TRUE(std::equal(v.distances().begin(), v.distances().end(),
+                             f.distances().begin(), f.distances().end()));
+      EXPECT_EQ(v.first_row(), f.first_row());
+    }
+  }
+  v1::QueryRequest bad;
+  bad.set_session(seq->name());
+  bad.set_kind(v1::QUERY_KIND_NEAREST);
+  bad.mutable_all_points();
+  bad.set_encoding(static_cast<v1::AnswerEncoding>(7));
+  grpc::Status st;
+  chunks(bad, &st);
+  EXPECT_EQ(st.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_NE(st.error_message().find("encoding: unknown value 7"),
+            std::string::npos)
+      << st.error_message();
 }
 
 // Paging tokens are opaque (no session name shows through) and only tokens

@@ -1,7 +1,8 @@
 // Query answers cut into response chunks (server/convert.h ChunkCursor):
 // the bytes it writes parse as QueryResponse messages that hold the rows
 // (whole rows while they fit, a longer row split with last_row_continues),
-// and protobuf serializes those messages back to the same bytes.
+// and protobuf serializes those messages back to the same bytes, in the
+// varint and the fixed-width encoding of offsets and ids.
 #include "server/convert.h"
 
 #include <gtest/gtest.h>
@@ -40,14 +41,24 @@ core::NeighborLists RandomLists(uint64_t rows, uint64_t max_row,
 struct Case {
   uint64_t rows, max_row, rows_per_chunk, results_per_chunk;
   bool distances, client_ids;
+  bool fixed = false;  // ANSWER_ENCODING_FIXED
 };
+
+// A chunk's offsets, ids and client ids from the fields of its encoding;
+// the other encoding's fields must be empty.
+template <typename T, typename Repeated>
+std::vector<T> Values(const Repeated& used, int other_size) {
+  EXPECT_EQ(other_size, 0) << "a field of the other encoding has values";
+  return std::vector<T>(used.begin(), used.end());
+}
 
 void Check(const Case& c, uint64_t seed) {
   SCOPED_TRACE(testing::Message()
                << "rows " << c.rows << " max_row " << c.max_row
                << " rows_per_chunk " << c.rows_per_chunk
                << " results_per_chunk " << c.results_per_chunk << " distances "
-               << c.distances << " client " << c.client_ids);
+               << c.distances << " client " << c.client_ids << " fixed "
+               << c.fixed);
   const core::NeighborLists l =
       RandomLists(c.rows, c.max_row, c.client_ids ? 5000 : 0, seed);
   std::vector<uint64_t> client;
@@ -59,9 +70,10 @@ void Check(const Case& c, uint64_t seed) {
     for (uint64_t& x : client) x = rng() >> (rng() % 64);
   }
   const uint64_t first = 1000, total = c.rows + 2000, step = seed % 3;
-  ChunkCursor cursor(l, c.rows, first, total, step, c.distances,
-                     c.client_ids ? &client : nullptr, c.rows_per_chunk,
-                     c.results_per_chunk);
+  ChunkCursor cursor(
+      l, c.rows, first, total, step, c.distances,
+      c.client_ids ? &client : nullptr, c.rows_per_chunk, c.results_per_chunk,
+      c.fixed ? v1::ANSWER_ENCODING_FIXED : v1::ANSWER_ENCODING_VARINT);
   // Rows put back together from the chunks.
   std::vector<uint64_t> ids, row_len;
   std::vector<double> distances;
@@ -79,25 +91,33 @@ void Check(const Case& c, uint64_t seed) {
     EXPECT_EQ(m.step(), step);
     EXPECT_EQ(m.total_rows(), total);
     EXPECT_EQ(m.first_row(), first + row);
-    ASSERT_GE(m.offsets_size(), 1);
-    EXPECT_EQ(m.offsets(0), 0u);
-    const uint64_t results = m.offsets(m.offsets_size() - 1);
+    const std::vector<uint64_t> offsets =
+        c.fixed ? Values<uint64_t>(m.fixed_offsets(), m.offsets_size())
+                : Values<uint64_t>(m.offsets(), m.fixed_offsets_size());
+    const std::vector<uint64_t> chunk_ids =
+        c.client_ids
+            ? (c.fixed
+                   ? Values<uint64_t>(m.fixed_client_ids(), m.client_ids_size())
+                   : Values<uint64_t>(m.client_ids(),
+                                      m.fixed_client_ids_size()))
+            : (c.fixed ? Values<uint64_t>(m.fixed_ids(), m.ids_size())
+                       : Values<uint64_t>(m.ids(), m.fixed_ids_size()));
+    EXPECT_EQ(m.ids_size() + m.fixed_ids_size() > 0 &&
+                  m.client_ids_size() + m.fixed_client_ids_size() > 0,
+              false);
+    ASSERT_GE(offsets.size(), 1u);
+    EXPECT_EQ(offsets[0], 0u);
+    const uint64_t results = offsets.back();
     EXPECT_LE(results, c.results_per_chunk);
-    EXPECT_LE(uint64_t(m.offsets_size() - 1), c.rows_per_chunk);
-    if (c.client_ids) {
-      EXPECT_EQ(m.ids_size(), 0);
-      ASSERT_EQ(uint64_t(m.client_ids_size()), results);
-      ids.insert(ids.end(), m.client_ids().begin(), m.client_ids().end());
-    } else {
-      ASSERT_EQ(uint64_t(m.ids_size()), results);
-      ids.insert(ids.end(), m.ids().begin(), m.ids().end());
-    }
+    EXPECT_LE(uint64_t(offsets.size() - 1), c.rows_per_chunk);
+    ASSERT_EQ(chunk_ids.size(), results);
+    ids.insert(ids.end(), chunk_ids.begin(), chunk_ids.end());
     ASSERT_EQ(uint64_t(m.distances_size()), c.distances ? results : 0);
     distances.insert(distances.end(), m.distances().begin(),
                      m.distances().end());
     for (uint32_t t : m.truncated_rows()) truncated.push_back(row + t);
-    for (int k = 1; k < m.offsets_size(); ++k) {
-      const uint64_t len = m.offsets(k) - m.offsets(k - 1);
+    for (size_t k = 1; k < offsets.size(); ++k) {
+      const uint64_t len = offsets[k] - offsets[k - 1];
       if (continuing && k == 1) {
         row_len.back() += len;
       } else {
@@ -105,7 +125,7 @@ void Check(const Case& c, uint64_t seed) {
       }
     }
     continuing = m.last_row_continues();
-    row += m.offsets_size() - 1 - (continuing ? 1 : 0);
+    row += offsets.size() - 1 - (continuing ? 1 : 0);
   }
   EXPECT_FALSE(continuing);
   EXPECT_GE(chunks, 1u);
@@ -136,7 +156,11 @@ TEST(ChunkCursor, BytesAreTheQueryResponsesOfTheRows) {
       {200, 3, 1, 2, true, true},
   };
   uint64_t seed = 1;
-  for (const Case& c : cases) Check(c, seed++);
+  for (Case c : cases) {
+    Check(c, seed);
+    c.fixed = true;
+    Check(c, seed++);
+  }
 }
 
 // Ids at every varint length boundary (1 to 5 bytes), each written as
@@ -166,6 +190,51 @@ TEST(ChunkCursor, IdsAtVarintLengthBoundaries) {
   want.mutable_distances()->Add(l.distances.begin(), l.distances.end());
   EXPECT_EQ(bytes, want.SerializeAsString());
   EXPECT_FALSE(cursor.NextBytes(&bytes));
+  // The same rows in fixed-width fields.
+  ChunkCursor fixed(l, rows, 0, rows, 7, true, nullptr, 16384, 196608,
+                    v1::ANSWER_ENCODING_FIXED);
+  ASSERT_TRUE(fixed.NextBytes(&bytes));
+  want.clear_offsets();
+  want.clear_ids();
+  want.mutable_fixed_offsets()->Add(l.offsets.begin(), l.offsets.end());
+  want.mutable_fixed_ids()->Add(l.ids.begin(), l.ids.end());
+  EXPECT_EQ(bytes, want.SerializeAsString());
+  EXPECT_FALSE(fixed.NextBytes(&bytes));
+}
+
+TEST(ChunkCursor, FixedWidthClientIdsAndSplitRowsKeepProtobufsBytes) {
+  // Client ids of every size, a row longer than a chunk, truncated rows:
+  // each chunk is the bytes protobuf writes for the message it parses as
+  // (Check above) and holds no varint offsets or ids.
+  core::NeighborLists l;
+  l.offsets = {0, 3, 40, 41};
+  for (uint32_t i = 0; i < 41; ++i) {
+    l.ids.push_back(i % 5);
+    l.distances.push_back(i * 0.5);
+  }
+  l.truncated = {0, 1, 0};
+  const std::vector<uint64_t> client = {0, 1, UINT64_MAX, uint64_t{1} << 40,
+                                        127};
+  ChunkCursor cursor(l, 3, 0, 3, 2, false, &client, 100, 16,
+                     v1::ANSWER_ENCODING_FIXED);
+  std::string bytes;
+  std::vector<uint64_t> got;
+  int chunks = 0;
+  while (cursor.NextBytes(&bytes)) {
+    ++chunks;
+    v1::QueryResponse m;
+    ASSERT_TRUE(m.ParseFromString(bytes));
+    EXPECT_EQ(m.SerializeAsString(), bytes);
+    EXPECT_EQ(m.offsets_size() + m.ids_size() + m.client_ids_size() +
+                  m.fixed_ids_size() + m.distances_size(),
+              0);
+    got.insert(got.end(), m.fixed_client_ids().begin(),
+               m.fixed_client_ids().end());
+  }
+  EXPECT_EQ(chunks, 4);  // 3 + 16 + 16 + 6 results
+  std::vector<uint64_t> want;
+  for (uint32_t id : l.ids) want.push_back(client[id]);
+  EXPECT_EQ(got, want);
 }
 
 }  // namespace

@@ -94,6 +94,12 @@ test('create, step, query against brute force, export, errors', async () => {
       assert.deepStrictEqual(split.ids, whole.ids);
       assert.deepStrictEqual(split.distances, whole.distances);
       assert.strictEqual(split.offsets[3], 180);
+      // The same rows in fixed-width fields.
+      const fixed = await client.query({...req, rowsPerChunk: 2,
+                                        encoding: 'ANSWER_ENCODING_FIXED'});
+      assert.deepStrictEqual(fixed.offsets, whole.offsets);
+      assert.deepStrictEqual(fixed.ids, whole.ids);
+      assert.deepStrictEqual(fixed.distances, whole.distances);
     }
 
     // A resent step (same requestId, its acknowledgement "lost") is not
@@ -168,6 +174,13 @@ test('client ids: 64-bit, exact, end to end; sequential ids never wrap',
       assert.deepStrictEqual([...knn.clientIds.slice(knn.offsets[row], knn.offsets[row + 1])],
                              [ids[d[0][1]], ids[d[1][1]]]);
     }
+    // The same answer in fixed-width fields (client ids as fixed64).
+    const fixedKnn = await client.query({
+      session: s.name, kind: 'QUERY_KIND_K_NEAREST', k: 2, excludeSelf: true,
+      includeDistances: true, encoding: 'ANSWER_ENCODING_FIXED',
+      pointIds: {clientIds: [ids[10].toString(), ids[20].toString()]}});
+    assert.deepStrictEqual(fixedKnn.clientIds, knn.clientIds);
+    assert.deepStrictEqual(fixedKnn.offsets, knn.offsets);
     const steps = await client.openSteps(s.name);
     const ack = await steps.moveTo([0.5, 0.5], [ids[5]]);
     assert.strictEqual(ack.step, 1);

@@ -179,14 +179,20 @@ class NeighborsBuilder:
             self._offsets[-1] = self._offsets[-1][:-1]
             self._rows -= 1
         self._continues = chunk.last_row_continues
-        off = np.asarray(chunk.offsets, dtype=np.uint64)
+        # Offsets and ids come in their varint fields or, for requests
+        # with encoding ANSWER_ENCODING_FIXED, in the fixed-width ones.
+        off = np.asarray(chunk.fixed_offsets or chunk.offsets,
+                         dtype=np.uint64)
+        ids = np.asarray(chunk.fixed_ids or chunk.ids, dtype=np.uint32)
+        cids = np.asarray(chunk.fixed_client_ids or chunk.client_ids,
+                          dtype=np.uint64)
         self._offsets.append(off[1:] + np.uint64(self._base))
-        self._ids.append(np.asarray(chunk.ids, dtype=np.uint32))
-        self._cids.append(np.asarray(chunk.client_ids, dtype=np.uint64))
+        self._ids.append(ids)
+        self._cids.append(cids)
         self._dists.append(np.asarray(chunk.distances, dtype=np.float64))
         self._trunc.append(np.asarray(chunk.truncated_rows, np.uint64) +
                            np.uint64(self._rows))
-        self._base += len(chunk.ids) + len(chunk.client_ids)
+        self._base += len(ids) + len(cids)
         self._rows += len(off) - 1
 
     def result(self) -> Neighbors:

@@ -126,6 +126,12 @@ class ClientTest(ServerTestCase):
             np.testing.assert_array_equal(split.distances, whole.distances)
             self.assertEqual(len(split), 3)
             self.assertEqual(len(split.row(1)), 100)
+            # The same rows in fixed-width fields.
+            req.encoding = pb.ANSWER_ENCODING_FIXED
+            fixed = c.query(req)
+            np.testing.assert_array_equal(fixed.offsets, whole.offsets)
+            np.testing.assert_array_equal(fixed.ids, whole.ids)
+            np.testing.assert_array_equal(fixed.distances, whole.distances)
             c.delete_session(s.name)
 
     def test_resent_steps_are_idempotent(self):
