@@ -333,6 +333,12 @@ absl::StatusOr<NeighborLists> RunRows(
   std::atomic<uint64_t> admitted{0};
   absl::Status refused;
   const bool counted = width == 0 && (limits.max_total_results || limits.admit);
+  // Results are added to `total` by each block in batches of up to
+  // kCountBatch (before the batch's last row is stored), so at any time
+  // every other thread holds fewer than that uncounted.
+  constexpr uint64_t kCountBatch = QueryLimits::kCountBatch;
+  const uint64_t uncounted_elsewhere =
+      kCountBatch * static_cast<uint64_t>(std::max(t.num_threads(), 1) - 1);
   if (t.num_sites() > 0) {
     const TriangulationView v =
         build_rows ? t.query_view() : t.view_with_cached_rows();
@@ -395,6 +401,8 @@ absl::StatusOr<NeighborLists> RunRows(
               staged_ids.resize(kBlock * width);
               if (distances) staged_dist.resize(kBlock * width);
             }
+            // This block's results not yet added to `total`.
+            uint64_t pending = 0;
             for (size_t j = first; j < last; ++j) {
               if (stop.load(std::memory_order_relaxed)) return;
               if (limits.cancel != nullptr && j % 64 == 0 &&
@@ -415,7 +423,8 @@ absl::StatusOr<NeighborLists> RunRows(
               RowBudget budget;
               budget.cancel = limits.cancel;
               if (limits.max_total_results) {
-                const uint64_t used = total.load(std::memory_order_relaxed);
+                const uint64_t used =
+                    total.load(std::memory_order_relaxed) + pending;
                 budget.cap = used >= limits.max_total_results
                                  ? 0
                                  : limits.max_total_results - used;
@@ -449,22 +458,33 @@ absl::StatusOr<NeighborLists> RunRows(
                 }
                 continue;
               }
-              const uint64_t kept =
-                  counted
-                      ? total.fetch_add(row.size(), std::memory_order_relaxed) +
-                            row.size()
-                      : 0;
+              // Results kept so far, as far as this block knows (the
+              // others' uncounted ones aside).
+              uint64_t kept = 0;
+              if (counted) {
+                pending += row.size();
+                if (pending >= kCountBatch) {
+                  kept = total.fetch_add(pending, std::memory_order_relaxed) +
+                         pending;
+                  pending = 0;
+                } else {
+                  kept = total.load(std::memory_order_relaxed) + pending;
+                }
+              }
               if (limits.max_total_results && kept > limits.max_total_results) {
                 exceeded.store(true, std::memory_order_relaxed);
                 stop.store(true, std::memory_order_relaxed);
                 return;
               }
+              // Admitted before this row is stored: every result any
+              // thread may hold.
+              const uint64_t held = kept + uncounted_elsewhere;
               if (limits.admit &&
-                  kept > admitted.load(std::memory_order_acquire)) {
+                  held > admitted.load(std::memory_order_acquire)) {
                 std::lock_guard<std::mutex> lock(admit_mu);
-                if (kept > admitted.load(std::memory_order_relaxed)) {
+                if (held > admitted.load(std::memory_order_relaxed)) {
                   const uint64_t step = QueryLimits::kAdmitStep;
-                  const uint64_t grant = (kept + step - 1) / step * step;
+                  const uint64_t grant = (held + step - 1) / step * step;
                   absl::Status s = refused.ok() ? limits.admit(grant) : refused;
                   if (!s.ok()) {
                     refused = s;
@@ -488,6 +508,16 @@ absl::StatusOr<NeighborLists> RunRows(
                 for (size_t c = 0; c < row.size(); ++c) {
                   dist[at + c] = row[c].dist;
                 }
+              }
+            }
+            if (pending > 0) {
+              // The block's last results: the count that completes the
+              // total is checked here (the last block to add sees it all).
+              const uint64_t kept =
+                  total.fetch_add(pending, std::memory_order_relaxed) + pending;
+              if (limits.max_total_results && kept > limits.max_total_results) {
+                exceeded.store(true, std::memory_order_relaxed);
+                stop.store(true, std::memory_order_relaxed);
               }
             }
             if (width == 0) return;
