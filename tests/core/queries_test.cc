@@ -554,6 +554,47 @@ void ExpectSameAnswer(const NeighborLists& a, const NeighborLists& b,
   EXPECT_EQ(a.truncated, b.truncated) << what;
 }
 
+// The limit is exact for answers of many rows, whose results the threads
+// count in batches (QueryLimits::kCountBatch): an answer of exactly the
+// limit is given, one result more is refused, on every plan and row form.
+TEST(Queries, TotalLimitIsExactOverManyRows) {
+  const auto pts = testing::UniformPoints(20000, 41);
+  auto t = Make(pts);
+  ASSERT_TRUE(t.ok());
+  std::vector<uint32_t> ids(pts.size());
+  std::iota(ids.begin(), ids.end(), 0u);
+  const std::vector<Vec2> qs = QueryPoints(pts, 15000, 42);
+  for (auto plan : {RowOptions::Plan::kGraph, RowOptions::Plan::kCells}) {
+    for (bool sets : {false, true}) {
+      RowOptions rows;
+      rows.plan = plan;
+      rows.closest_first = !sets;
+      rows.distances = !sets;
+      for (bool of_points : {false, true}) {
+        auto ask = [&](QueryLimits limits) {
+          return of_points ? WithinRadiusOfPoints(*t, ids, 0.012, false, 0,
+                                                  limits, rows)
+                           : WithinRadius(*t, qs, 0.012, 0, limits, rows);
+        };
+        auto whole = ask({});
+        ASSERT_TRUE(whole.ok()) << whole.status();
+        const uint64_t total = whole->ids.size();
+        ASSERT_GT(total, 50 * QueryLimits::kCountBatch);
+        QueryLimits limits;
+        limits.max_total_results = total;
+        auto at = ask(limits);
+        ASSERT_TRUE(at.ok()) << at.status();
+        ExpectSameAnswer(*at, *whole, "at the limit");
+        limits.max_total_results = total - 1;
+        EXPECT_EQ(ask(limits).status().code(),
+                  absl::StatusCode::kResourceExhausted)
+            << "plan " << static_cast<int>(plan) << " sets " << sets
+            << " of points " << of_points;
+      }
+    }
+  }
+}
+
 // RowOptions::recycle: an answer built in an earlier answer's memory is the
 // answer built fresh, whatever the earlier one held (another kind, size,
 // with or without distances); the host executors take its memory.
