@@ -153,13 +153,17 @@ int64_t FixedBytes(uint32_t type, uint32_t single, size_t width,
   return bytes % width == 0 ? static_cast<int64_t>(bytes) : -1;
 }
 
-// Appends `bytes` bytes of little-endian values at body to out.
+// Appends the values of a fixed-width field (T on the wire, little-endian)
+// to out; false when a packed run is not a whole number of values.
 template <typename T>
-void AppendFixed(const char* body, size_t bytes, std::vector<T>* out) {
-  if (bytes == 0) return;
+bool AppendFixed(uint32_t type, uint32_t single, const char* body,
+                 const char* body_end, std::vector<T>* out) {
+  const int64_t bytes = FixedBytes(type, single, sizeof(T), body, body_end);
+  if (bytes <= 0) return bytes == 0;
   const size_t old = out->size();
-  out->resize(old + bytes / sizeof(T));
-  std::memcpy(out->data() + old, body, bytes);
+  out->resize(old + static_cast<size_t>(bytes) / sizeof(T));
+  std::memcpy(out->data() + old, body, static_cast<size_t>(bytes));
+  return true;
 }
 
 absl::Status Malformed(const char* what) {
@@ -293,12 +297,11 @@ absl::Status AnswerReader::Append(absl::string_view chunk) {
               [row0](uint64_t x) { return row0 + static_cast<uint32_t>(x); });
         }
         break;
-      case kDistances: {
-        const int64_t bytes = FixedBytes(type, kFixed64, 8, body, body_end);
-        if (bytes < 0) return Malformed("packed doubles");
-        AppendFixed(body, static_cast<size_t>(bytes), &out_.distances);
+      case kDistances:
+        if (!AppendFixed(type, kFixed64, body, body_end, &out_.distances)) {
+          return Malformed("packed doubles");
+        }
         break;
-      }
       case kFixedOffsets: {
         const int64_t bytes = FixedBytes(type, kFixed32, 4, body, body_end);
         if (bytes < 0) return Malformed("packed fixed32 offsets");
@@ -312,18 +315,16 @@ absl::Status AnswerReader::Append(absl::string_view chunk) {
         }
         break;
       }
-      case kFixedIds: {
-        const int64_t bytes = FixedBytes(type, kFixed32, 4, body, body_end);
-        if (bytes < 0) return Malformed("packed fixed32 ids");
-        AppendFixed(body, static_cast<size_t>(bytes), &out_.ids);
+      case kFixedIds:
+        if (!AppendFixed(type, kFixed32, body, body_end, &out_.ids)) {
+          return Malformed("packed fixed32 ids");
+        }
         break;
-      }
-      case kFixedClientIds: {
-        const int64_t bytes = FixedBytes(type, kFixed64, 8, body, body_end);
-        if (bytes < 0) return Malformed("packed fixed64 client ids");
-        AppendFixed(body, static_cast<size_t>(bytes), &out_.client_ids);
+      case kFixedClientIds:
+        if (!AppendFixed(type, kFixed64, body, body_end, &out_.client_ids)) {
+          return Malformed("packed fixed64 client ids");
+        }
         break;
-      }
       default:
         break;
     }
