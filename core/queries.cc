@@ -476,10 +476,10 @@ absl::StatusOr<NeighborLists> RunRows(
                 stop.store(true, std::memory_order_relaxed);
                 return;
               }
-              // Admitted before this row is stored: every result any
-              // thread may hold.
+              // Admitted before this row is stored (an empty row stores
+              // nothing): every result any thread may hold.
               const uint64_t held = kept + uncounted_elsewhere;
-              if (limits.admit &&
+              if (limits.admit && !row.empty() &&
                   held > admitted.load(std::memory_order_acquire)) {
                 std::lock_guard<std::mutex> lock(admit_mu);
                 if (held > admitted.load(std::memory_order_relaxed)) {
@@ -1027,6 +1027,13 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
         if (CompareDistanceToRadius(q.q, v.pos[root], r) > 0) {
           return kRowComplete;
         }
+        // A row cut at max_results ends with at most that many points:
+        // when the budget has room for them, the points met on the way to
+        // the closest ones do not stop it (they once refused queries of cut
+        // rows whose answers were within the limit).
+        const uint64_t cap = max_results != 0 && max_results <= budget.cap
+                                 ? UINT64_MAX
+                                 : budget.cap;
         auto& found = Scratch<std::pair<double, uint32_t>>();
         found.clear();
         const double rr = r * r;
@@ -1125,7 +1132,7 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
                 const size_t m = filter(c, ce, out.size());
                 out.resize(m);
                 scanned += ce - c;
-                if (m > budget.cap) {
+                if (m > cap) {
                   end = kRowOverBudget;
                   return false;
                 }
@@ -1166,7 +1173,7 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
                   return false;
                 }
                 // Every site but the query's own emits a point.
-                if ((direct ? out.size() : found.size() - 1) > budget.cap) {
+                if ((direct ? out.size() : found.size() - 1) > cap) {
                   end = kRowOverBudget;
                   return false;
                 }
@@ -1190,7 +1197,7 @@ absl::StatusOr<NeighborLists> RadiusImpl(const Triangulation& t,
           for (size_t head = 0; head < found.size(); ++head) {
             if (found.size() > knn_switch) return cut_by_knn();
             // Every site but the query's own emits a point.
-            if (found.size() - 1 > budget.cap) return kRowOverBudget;
+            if (found.size() - 1 > cap) return kRowOverBudget;
             if (head % RowBudget::kPollEvery == RowBudget::kPollEvery - 1 &&
                 budget.Cancelled()) {
               return kRowCancelled;

@@ -848,12 +848,6 @@ grpc::Status KinetriServiceImpl::RunQuery(
       return (grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                            "kind: must be NEAREST, K_NEAREST or RADIUS"));
   }
-  if (!v1::AnswerEncoding_IsValid(req->encoding())) {
-    return (
-        grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                     absl::StrCat("encoding: unknown value ", req->encoding(),
-                                  " (UNSPECIFIED, VARINT or FIXED)")));
-  }
   std::vector<core::Vec2> positions;
   if (req->has_positions()) {
     absl::Status st =
@@ -944,7 +938,13 @@ grpc::Status KinetriServiceImpl::RunQuery(
   for (uint64_t first = 0; first < total_rows || first == 0;
        first += block_rows) {
     const uint64_t count = std::min(block_rows, total_rows - first);
-    limits.max_total_results = session.max_query_results() - produced;
+    // What is left of the answer's limit for this block (0: no limit). Once
+    // earlier blocks used it all, the block may still answer rows without
+    // results: it runs under a limit of 1, and any result is refused below.
+    const uint64_t limit = session.max_query_results();
+    limits.max_total_results =
+        limit == 0 ? 0
+                   : std::max<uint64_t>(limit - std::min(produced, limit), 1);
     absl::StatusOr<core::NeighborLists> result;
     const absl::Span<const uint32_t> id_block =
         by_id ? absl::MakeConstSpan(ids).subspan(first, count)
@@ -1018,7 +1018,12 @@ grpc::Status KinetriServiceImpl::RunQuery(
       if (result.ok()) {
         chunks.emplace(*result, count, first, total_rows, snap.step,
                        req->include_distances(), cids, rows_per_chunk,
-                       results_per_chunk, req->encoding());
+                       results_per_chunk,
+                       // An encoding this server does not know (a newer
+                       // client's): varints, which every client reads.
+                       req->encoding() == v1::ANSWER_ENCODING_FIXED
+                           ? v1::ANSWER_ENCODING_FIXED
+                           : v1::ANSWER_ENCODING_VARINT);
         encode_next();
       }
     };
@@ -1030,18 +1035,19 @@ grpc::Status KinetriServiceImpl::RunQuery(
     } else {
       compute();
     }
-    if (!result.ok()) {
-      if (result.status().code() == absl::StatusCode::kResourceExhausted &&
-          !memory_refused) {
-        return (grpc::Status(
-            grpc::StatusCode::RESOURCE_EXHAUSTED,
-            absl::StrCat("query stopped: its rows hold more than ",
-                         session.max_query_results(),
-                         " results in all (the limit); ask fewer targets, a "
-                         "smaller k or radius, or set max_results_per_row")));
-      }
-      return (ToGrpc(result.status()));
+    const bool over_limit =
+        result.ok()
+            ? limit != 0 && produced + result->ids.size() > limit
+            : result.status().code() == absl::StatusCode::kResourceExhausted &&
+                  !memory_refused;
+    if (over_limit) {
+      return (grpc::Status(
+          grpc::StatusCode::RESOURCE_EXHAUSTED,
+          absl::StrCat("query stopped: its rows hold more than ", limit,
+                       " results in all (the limit); ask fewer targets, a "
+                       "smaller k or radius, or set max_results_per_row")));
     }
+    if (!result.ok()) return (ToGrpc(result.status()));
     produced += result->ids.size();
     // Later chunks are written on the query threads as well, one at a time
     // as the previous one is sent; this thread only hands the bytes to

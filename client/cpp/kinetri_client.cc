@@ -256,11 +256,9 @@ absl::StatusOr<Neighbors> ReadAnswer(Reader* reader, grpc::ClientContext* ctx) {
 
 absl::StatusOr<Neighbors> Client::Query(const v1::QueryRequest& request) {
   if (!init_status_.ok()) return init_status_;
-  if (request.encoding() == v1::ANSWER_ENCODING_UNSPECIFIED) {
-    v1::QueryRequest fixed = request;
-    fixed.set_encoding(v1::ANSWER_ENCODING_FIXED);
-    return Query(fixed);
-  }
+  // Answers in fixed-width fields unless the request names an encoding.
+  const bool default_encoding =
+      request.encoding() == v1::ANSWER_ENCODING_UNSPECIFIED;
   grpc::ClientContext ctx;
   Prepare(&ctx, request.session());
   // Values (coordinates or ids) per message: chunk_points positions.
@@ -272,9 +270,16 @@ absl::StatusOr<Neighbors> Client::Query(const v1::QueryRequest& request) {
                                    request.point_ids().client_ids_size()
                              : 0;
   if (targets <= per) {
+    // (A copy of at most one message's targets, to name the encoding.)
+    v1::QueryRequest named;
+    if (default_encoding) {
+      named = request;
+      named.set_encoding(v1::ANSWER_ENCODING_FIXED);
+    }
     std::unique_ptr<grpc::ClientReader<grpc::ByteBuffer>> reader(
         grpc::internal::ClientReaderFactory<grpc::ByteBuffer>::Create(
-            channel_.get(), *query_method_, &ctx, request));
+            channel_.get(), *query_method_, &ctx,
+            default_encoding ? named : request));
     return ReadAnswer(reader.get(), &ctx);
   }
   // More targets than one message should carry: StreamQuery, the query
@@ -289,6 +294,7 @@ absl::StatusOr<Neighbors> Client::Query(const v1::QueryRequest& request) {
     v1::QueryRequest part;
     if (i == 0) {
       part = request;
+      if (default_encoding) part.set_encoding(v1::ANSWER_ENCODING_FIXED);
       if (positions) {
         part.mutable_positions()->mutable_xy()->Truncate(static_cast<int>(end));
       } else {

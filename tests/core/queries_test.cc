@@ -595,6 +595,38 @@ TEST(Queries, TotalLimitIsExactOverManyRows) {
   }
 }
 
+// Rows cut at max_results count what they keep, not the points they meet
+// on the way: an answer of exactly the limit is given though each disk
+// holds ~300 points (they once stopped rows near the end as over the
+// limit), and one result more is refused.
+TEST(Queries, CutRowsCountWhatTheyKeep) {
+  const auto pts = testing::UniformPoints(10000, 43);
+  auto t = Make(pts);
+  ASSERT_TRUE(t.ok());
+  std::vector<uint32_t> ids(3000);
+  std::iota(ids.begin(), ids.end(), 0u);
+  for (auto plan : {RowOptions::Plan::kGraph, RowOptions::Plan::kCells}) {
+    for (bool sorted : {true, false}) {
+      RowOptions rows;
+      rows.plan = plan;
+      rows.closest_first = sorted;
+      auto whole = WithinRadiusOfPoints(*t, ids, 0.1, true, 4, {}, rows);
+      ASSERT_TRUE(whole.ok()) << whole.status();
+      ASSERT_EQ(whole->ids.size(), 4 * ids.size());  // every row cut at 4
+      QueryLimits limits;
+      limits.max_total_results = whole->ids.size();
+      auto at = WithinRadiusOfPoints(*t, ids, 0.1, true, 4, limits, rows);
+      ASSERT_TRUE(at.ok()) << at.status();
+      ExpectSameAnswer(*at, *whole, "cut rows at the limit");
+      limits.max_total_results = whole->ids.size() - 1;
+      EXPECT_EQ(WithinRadiusOfPoints(*t, ids, 0.1, true, 4, limits, rows)
+                    .status()
+                    .code(),
+                absl::StatusCode::kResourceExhausted);
+    }
+  }
+}
+
 // RowOptions::recycle: an answer built in an earlier answer's memory is the
 // answer built fresh, whatever the earlier one held (another kind, size,
 // with or without distances); the host executors take its memory.

@@ -22,6 +22,7 @@
 #include <thread>
 #include <vector>
 
+#include "absl/strings/str_cat.h"
 #include "client/cpp/kinetri_client.h"
 #include "tests/e2e/raw_call.h"
 #include "tests/e2e/server_process.h"
@@ -189,6 +190,54 @@ TEST(HardeningLimits, ResultLimitStopsTheWork) {
   std::printf("refused after %.0f ms: %s\n", ms,
               std::string(r.status().message()).c_str());
   EXPECT_LT(ms, 5000.0);
+}
+
+// The limit holds across the blocks of rows the server computes one after
+// another (65536 rows each): when the first block used it exactly, the
+// next one answered without a limit (a remaining limit of 0 meant none),
+// so an answer of more results than the limit was given.
+TEST(HardeningLimits, ResultLimitHoldsAcrossBlocks) {
+  constexpr uint32_t kBlock = 65536, kPerRow = 4, kDense = 80000;
+  testing::ServerProcess server(
+      KINETRI_SERVER_BINARY,
+      {"--max_points=300000",
+       absl::StrCat("--max_query_results=", uint64_t{kBlock} * kPerRow),
+       "--threads=2"});
+  ASSERT_TRUE(server.ok());
+  Client client(server.target());
+  // Dense points, then 100 far from everything (no neighbour within r).
+  std::vector<double> xy = UniformXY(kDense, 4);
+  for (int i = 0; i < 100; ++i) {
+    xy.push_back(10.0 + i);
+    xy.push_back(10.0);
+  }
+  auto s = client.CreateSession(xy, v1::SessionOptions(), "b");
+  ASSERT_TRUE(s.ok()) << s.status();
+  auto ask = [&](uint32_t then_from) {
+    v1::QueryRequest q;
+    q.set_session(s->name());
+    q.set_kind(v1::QUERY_KIND_RADIUS);
+    q.set_radius(0.05);  // ~600 dense points each: rows cut to kPerRow
+    q.set_max_results_per_row(kPerRow);
+    q.set_exclude_self(true);
+    for (uint32_t i = 0; i < kBlock; ++i) q.mutable_point_ids()->add_ids(i);
+    // A second block of 100 rows.
+    for (uint32_t i = then_from; i < then_from + 100; ++i) {
+      q.mutable_point_ids()->add_ids(i);
+    }
+    return client.Query(q);
+  };
+  // The first block uses the limit exactly; a second block of rows without
+  // results is answered...
+  auto at = ask(kDense);
+  ASSERT_TRUE(at.ok()) << at.status();
+  EXPECT_EQ(at->ids.size(), uint64_t{kBlock} * kPerRow);
+  EXPECT_EQ(at->offsets.size(), kBlock + 101u);
+  // ...and one with results is refused.
+  auto over = ask(kBlock);
+  EXPECT_EQ(over.status().code(), absl::StatusCode::kResourceExhausted)
+      << (over.ok() ? absl::StrCat(over->ids.size(), " results given")
+                    : over.status().ToString());
 }
 
 // Defect 4: a 1-point step waited 14-26 s behind a stream of k-NN queries
