@@ -75,7 +75,9 @@ v1::StepStats ToProto(const core::StepReport& report);
 // more results split across chunks (last_row_continues). Each chunk is
 // built only when Next() is called (the answer is never held twice). With
 // client_ids, result ids are the client's ids. `encoding` picks the
-// fields of offsets and ids (v1::AnswerEncoding: varint or fixed-width).
+// fields of offsets and ids: fixed-width for ANSWER_ENCODING_FIXED,
+// varints for any other value (one this server does not know included:
+// every client reads varints).
 class ChunkCursor {
  public:
   ChunkCursor(const core::NeighborLists& lists, uint64_t count,

@@ -1018,12 +1018,7 @@ grpc::Status KinetriServiceImpl::RunQuery(
       if (result.ok()) {
         chunks.emplace(*result, count, first, total_rows, snap.step,
                        req->include_distances(), cids, rows_per_chunk,
-                       results_per_chunk,
-                       // An encoding this server does not know (a newer
-                       // client's): varints, which every client reads.
-                       req->encoding() == v1::ANSWER_ENCODING_FIXED
-                           ? v1::ANSWER_ENCODING_FIXED
-                           : v1::ANSWER_ENCODING_VARINT);
+                       results_per_chunk, req->encoding());
         encode_next();
       }
     };
