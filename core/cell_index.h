@@ -92,6 +92,10 @@ class CellIndex {
         b = start_[size_t{y} * nx_ + x0];
         e = start_[size_t{y} * nx_ + x1 + 1];
       } else if (!rank_.empty()) {
+        // Most rows a wide square crosses in a sparse index are empty
+        // there (a point between clusters, in cells sized for them): a
+        // look at the bitmap skips them without counting ranks.
+        if (RowEmpty(y, x0, x1)) continue;
         b = start_[Rank(y, x0)];
         e = start_[Rank(y, x1 + 1)];
       } else {
@@ -134,13 +138,32 @@ class CellIndex {
     const size_t w = size_t{y} * words_per_row_ + x / 64;
     return rank_[w] + Popcount(bits_[w] & ((uint64_t{1} << (x % 64)) - 1));
   }
+  // Whether row y has no occupied cell in columns x0..x1 (x0 <= x1 < nx_;
+  // ranked sparse form).
+  bool RowEmpty(uint32_t y, uint32_t x0, uint32_t x1) const {
+    const uint64_t* row = bits_.data() + size_t{y} * words_per_row_;
+    const uint32_t w0 = x0 / 64, w1 = x1 / 64;
+    const uint64_t from_x0 = ~uint64_t{0} << (x0 % 64);
+    const uint64_t to_x1 = ~uint64_t{0} >> (63 - x1 % 64);
+    if (w0 == w1) return (row[w0] & from_x0 & to_x1) == 0;
+    if ((row[w0] & from_x0) != 0) return false;
+    for (uint32_t w = w0 + 1; w < w1; ++w) {
+      if (row[w] != 0) return false;
+    }
+    return (row[w1] & to_x1) == 0;
+  }
   // Set bits of x, inline (std::popcount calls a library routine where the
-  // target has no popcnt instruction, as the baseline x86-64 has not).
+  // target has no popcnt instruction, as the baseline x86-64 has not; a
+  // build for a target with one, -mpopcnt or -march=native, uses it).
   static uint32_t Popcount(uint64_t x) {
+#ifdef __POPCNT__
+    return static_cast<uint32_t>(__builtin_popcountll(x));
+#else
     x = x - ((x >> 1) & 0x5555555555555555u);
     x = (x & 0x3333333333333333u) + ((x >> 2) & 0x3333333333333333u);
     x = (x + (x >> 4)) & 0x0f0f0f0f0f0f0f0fu;
     return static_cast<uint32_t>((x * 0x0101010101010101u) >> 56);
+#endif
   }
   uint32_t Cell(double c, double origin, uint32_t count) const {
     return CellOf(c, origin, inv_, count);

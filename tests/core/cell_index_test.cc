@@ -156,6 +156,46 @@ TEST(CellIndex, BothFormsFindEveryDiskFarFromTheOrigin) {
   CheckBothForms(testing::UniformPoints(2000, 8, 1e-9), {1e-11, 5e-11}, 9);
 }
 
+// Squares much wider than a cell (a point between clusters, in cells sized
+// for the clusters): the ranked form skips the rows it finds empty in the
+// bitmap, across up to hundreds of 64-column words and at every word
+// boundary, and must give the same runs as the binary searches.
+TEST(CellIndex, WideSquaresSkipEmptyRowsOfTheBitmap) {
+  const auto pts = testing::ClusteredPoints(4000, 21);
+  auto t = Triangulation::Create(pts);
+  ASSERT_TRUE(t.ok());
+  const TriangulationView v = t->view();
+  const double side = 1.2e-3;  // 15 words per row: the bitmap is kept
+  const auto ranked = CellIndex::Build(v, side, Sparse());
+  CellIndex::Limits searched_limits = Sparse();
+  searched_limits.rank_rows = false;
+  const auto searched = CellIndex::Build(v, side, searched_limits);
+  ASSERT_TRUE(ranked && searched);
+  ASSERT_TRUE(ranked->ranked());
+  std::mt19937_64 rng(22);
+  std::uniform_int_distribution<size_t> pick(0, pts.size() - 1);
+  std::uniform_real_distribution<double> u(0.0, 1.0);
+  size_t found = 0, runs = 0;
+  for (int k = 0; k < 400; ++k) {
+    // Anywhere in the box (mostly between the clusters), radii of 1 to
+    // 1000 cells; every 4th query starts on a word boundary.
+    Vec2 q = k % 2 == 0 ? pts[pick(rng)] : Vec2{u(rng), u(rng)};
+    if (k % 4 == 3) q.x = 64 * side * std::floor(q.x / (64 * side));
+    const double r = side * std::pow(1000.0, u(rng));
+    const auto want = Brute(v, q, r);
+    const auto got_runs = Runs(*ranked, q, r);
+    ASSERT_EQ(got_runs, Runs(*searched, q, r))
+        << "r=" << r << " q=" << q.x << "," << q.y;
+    size_t scanned = 0;
+    ASSERT_EQ(FromRuns(*ranked, q, r, &scanned), want)
+        << "r=" << r << " q=" << q.x << "," << q.y;
+    found += want.size();
+    runs += got_runs.size();
+  }
+  EXPECT_GT(found, 0u);
+  EXPECT_GT(runs, 0u);
+}
+
 // Columns too many to count (more than 4 per site: each row's sites are
 // sorted instead): the box is 1000 times wider than high.
 TEST(CellIndex, SparseFormOfAWideBox) {
