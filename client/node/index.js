@@ -491,7 +491,25 @@ class Client {
                    truncatedRows: [], clientIds: []};
       const call = this.openQuery(request);
       let continues = false;  // the last row goes on in this chunk
+      let refused = false;
+      const both = (fixed, varint) =>
+        fixed && fixed.length > 0 && varint && varint.length > 0;
       call.on('data', (chunk) => {
+        if (refused) return;
+        // A field in both encodings is no answer a server writes: refused
+        // (as the C++ client refuses it), the rest of the call cancelled.
+        if (both(chunk.fixedOffsets, chunk.offsets) ||
+            both(chunk.fixedIds, chunk.ids) ||
+            both(chunk.fixedClientIds, chunk.clientIds)) {
+          refused = true;
+          reject(new KinetriError({
+            code: grpc.status.INTERNAL,
+            details: 'query answer: not a valid QueryResponse (offsets, ids ' +
+                'or client ids both as varints and fixed-width)',
+          }));
+          call.cancel();
+          return;
+        }
         out.step = Number(chunk.step);
         // A row split across chunks: its end offset is replaced.
         if (continues) out.offsets.pop();

@@ -947,3 +947,53 @@ test('query targets beyond one message go by StreamQuery', async () => {
     proc.kill();
   }
 });
+
+// A chunk that carries offsets, ids or client ids in both encodings is no
+// answer a server writes: the query is refused with INTERNAL, as the C++
+// client refuses it. A fake server (the same proto) writes them.
+test('a query answer with a field in both encodings is refused', async () => {
+  const grpc = require('@grpc/grpc-js');
+  const protoLoader = require('@grpc/proto-loader');
+  const path = require('node:path');
+  const protoDir = path.join(__dirname, '..', '..', '..', 'proto');
+  const def = protoLoader.loadSync(
+      path.join(protoDir, 'kinetri', 'v1', 'kinetri.proto'),
+      {keepCase: false, longs: String, enums: String, defaults: true,
+       oneofs: true, includeDirs: [protoDir]});
+  const Service = grpc.loadPackageDefinition(def).kinetri.v1.KinetriService;
+  const good = {offsets: [0, 1], ids: [4]};
+  const bad = [
+    {offsets: [0, 1], fixedOffsets: [0, 1], ids: [4]},
+    {offsets: [0, 1], ids: [4], fixedIds: [4]},
+    {fixedOffsets: [0, 1], clientIds: ['4'], fixedClientIds: ['4']},
+  ];
+  let chunk = good;
+  const server = new grpc.Server();
+  server.addService(Service.service, {
+    query: (call) => {
+      call.write({step: 3, ...chunk});
+      call.write({step: 3, offsets: [0, 1], ids: [5]});
+      call.end();
+    },
+  });
+  const port = await new Promise((resolve, reject) => server.bindAsync(
+      '127.0.0.1:0', grpc.ServerCredentials.createInsecure(),
+      (err, p) => (err ? reject(err) : resolve(p))));
+  const client = new Client(`127.0.0.1:${port}`);
+  try {
+    const req = {session: 's', kind: 'QUERY_KIND_K_NEAREST', k: 1,
+                 pointIds: {ids: [0]}};
+    const ok = await client.query(req);
+    assert.deepStrictEqual(Array.from(ok.ids), [4, 5]);
+    for (chunk of bad) {
+      await assert.rejects(client.query(req), (err) => {
+        assert.strictEqual(err.code, status.INTERNAL, JSON.stringify(chunk));
+        assert.match(err.message, /both as varints and fixed-width/);
+        return true;
+      });
+    }
+  } finally {
+    client.close();
+    server.forceShutdown();
+  }
+});

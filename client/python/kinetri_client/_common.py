@@ -172,6 +172,15 @@ class NeighborsBuilder:
         self._continues = False
 
     def add(self, chunk: "pb.QueryResponse") -> None:
+        # A field in both encodings is no answer a server writes; it is
+        # refused, as the C++ client refuses it, before anything is kept.
+        if ((chunk.fixed_offsets and chunk.offsets) or
+                (chunk.fixed_ids and chunk.ids) or
+                (chunk.fixed_client_ids and chunk.client_ids)):
+            raise KinetriError(
+                grpc.StatusCode.INTERNAL,
+                "query answer: not a valid QueryResponse (offsets, ids or "
+                "client ids both as varints and fixed-width)")
         self._step = chunk.step
         if self._continues:
             # The row split across chunks goes on: its end offset is

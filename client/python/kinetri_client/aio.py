@@ -15,7 +15,8 @@ import grpc.aio
 
 from kinetri_client._common import (CHUNK_POINTS, DEFAULT_DEADLINE,
                                     ClientBase, Export, ExportBuilder,
-                                    Metadata, Neighbors, NeighborsBuilder,
+                                    KinetriError, Metadata, Neighbors,
+                                    NeighborsBuilder,
                                     create_requests, new_session_id, pb,
                                     query_messages, query_request,
                                     raise_from, route,
@@ -219,6 +220,7 @@ class AsyncClient(ClientBase):
         out = NeighborsBuilder()
         # Targets beyond one message go by StreamQuery, cut into messages.
         msgs = query_messages(request, 2 * self._chunk_points)
+        call = None
         try:
             call = (self._stub.Query(request, timeout=self._deadline,
                                      metadata=self._md(request.session))
@@ -229,6 +231,11 @@ class AsyncClient(ClientBase):
                 out.add(chunk)
         except grpc.RpcError as e:
             raise_from(e)
+        except KinetriError:
+            # A chunk was refused: the rest of the answer is not read.
+            if call is not None:
+                call.cancel()
+            raise
         return out.result()
 
     async def nearest_all(self, name: str) -> Neighbors:

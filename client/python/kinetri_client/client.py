@@ -245,6 +245,7 @@ class Client(ClientBase):
         out = NeighborsBuilder()
         # Targets beyond one message go by StreamQuery, cut into messages.
         msgs = query_messages(request, 2 * self._chunk_points)
+        chunks = None
         try:
             chunks = (self._stub.Query(request, timeout=self._deadline,
                                        metadata=self._md(request.session))
@@ -256,6 +257,11 @@ class Client(ClientBase):
                 out.add(chunk)
         except grpc.RpcError as e:
             raise_from(e)
+        except KinetriError:
+            # A chunk was refused: the rest of the answer is not read.
+            if chunks is not None:
+                chunks.cancel()
+            raise
         return out.result()
 
     def nearest_all(self, name: str) -> Neighbors:

@@ -271,6 +271,58 @@ class StreamQueryTest(ServerTestCase):
             c.delete_session(s.name)
 
 
+class MalformedAnswerTest(unittest.TestCase):
+    """A chunk that carries offsets, ids or client ids in both encodings
+    is no answer a server writes: both clients (sync and asyncio) refuse it
+    with INTERNAL, as the C++ client does. A fake server writes them."""
+
+    def test_a_field_in_both_encodings_is_refused(self):
+        import asyncio
+        from concurrent import futures
+        from kinetri_client._common import pb, pb_grpc, query_request
+        from kinetri_client.aio import AsyncClient
+        good = dict(offsets=[0, 1], ids=[4])
+        bad = [dict(offsets=[0, 1], fixed_offsets=[0, 1], ids=[4]),
+               dict(offsets=[0, 1], ids=[4], fixed_ids=[4]),
+               dict(fixed_offsets=[0, 1], client_ids=[4],
+                    fixed_client_ids=[4])]
+        chunk = good
+
+        class Fake(pb_grpc.KinetriServiceServicer):
+            def Query(self, request, context):
+                yield pb.QueryResponse(step=3, **chunk)
+                yield pb.QueryResponse(step=3, offsets=[0, 1], ids=[5])
+
+        server = grpc.server(futures.ThreadPoolExecutor(max_workers=4))
+        pb_grpc.add_KinetriServiceServicer_to_server(Fake(), server)
+        port = server.add_insecure_port("127.0.0.1:0")
+        server.start()
+        target = f"127.0.0.1:{port}"
+        req = query_request("s", pb.QUERY_KIND_K_NEAREST, k=1, ids=[0])
+
+        async def ask():
+            async with AsyncClient(target) as a:
+                return await a.query(req)
+        try:
+            with Client(target) as c:
+                # Well-formed chunks are read.
+                self.assertEqual(list(c.query(req).ids), [4, 5])
+                self.assertEqual(list(asyncio.run(ask()).ids), [4, 5])
+                for chunk in bad:
+                    with self.assertRaises(KinetriError) as e:
+                        c.query(req)
+                    self.assertEqual(e.exception.code,
+                                     grpc.StatusCode.INTERNAL, chunk)
+                    self.assertIn("both as varints and fixed-width",
+                                  e.exception.message)
+                    with self.assertRaises(KinetriError) as e:
+                        asyncio.run(ask())
+                    self.assertEqual(e.exception.code,
+                                     grpc.StatusCode.INTERNAL, chunk)
+        finally:
+            server.stop(None)
+
+
 def rank(xy, q, skip=None):
     """Indices of `xy` in the order queries answer from `q`: squared
     distance, ties between distinct positions to the larger x, then the
