@@ -158,14 +158,14 @@ TEST(CellIndex, BothFormsFindEveryDiskFarFromTheOrigin) {
 
 // Squares much wider than a cell (a point between clusters, in cells sized
 // for the clusters): the ranked form skips the rows it finds empty in the
-// bitmap, across up to hundreds of 64-column words and at every word
-// boundary, and must give the same runs as the binary searches.
+// bitmap, across all of a row's words, and must give the same runs as the
+// binary searches.
 TEST(CellIndex, WideSquaresSkipEmptyRowsOfTheBitmap) {
   const auto pts = testing::ClusteredPoints(4000, 21);
   auto t = Triangulation::Create(pts);
   ASSERT_TRUE(t.ok());
   const TriangulationView v = t->view();
-  const double side = 1.2e-3;  // 15 words per row: the bitmap is kept
+  const double side = 1.2e-3;  // about 14 words per row: the bitmap is kept
   const auto ranked = CellIndex::Build(v, side, Sparse());
   CellIndex::Limits searched_limits = Sparse();
   searched_limits.rank_rows = false;
@@ -178,7 +178,7 @@ TEST(CellIndex, WideSquaresSkipEmptyRowsOfTheBitmap) {
   size_t found = 0, runs = 0;
   for (int k = 0; k < 400; ++k) {
     // Anywhere in the box (mostly between the clusters), radii of 1 to
-    // 1000 cells; every 4th query starts on a word boundary.
+    // 1000 cells; every 4th query centred near a multiple of 64 cells.
     Vec2 q = k % 2 == 0 ? pts[pick(rng)] : Vec2{u(rng), u(rng)};
     if (k % 4 == 3) q.x = 64 * side * std::floor(q.x / (64 * side));
     const double r = side * std::pow(1000.0, u(rng));
@@ -193,6 +193,53 @@ TEST(CellIndex, WideSquaresSkipEmptyRowsOfTheBitmap) {
     runs += got_runs.size();
   }
   EXPECT_GT(found, 0u);
+  EXPECT_GT(runs, 0u);
+}
+
+// Squares whose columns start and end at every side of a 64-column word
+// boundary, over rows with sites in exactly those columns: any bit the
+// ranked form's masks get wrong changes the runs.
+TEST(CellIndex, SquaresAtWordBoundariesSkipOnlyEmptyRows) {
+  const std::vector<uint32_t> marked = {0,   1,   62,  63,  64,  65,  126,
+                                        127, 128, 129, 190, 191, 192, 200};
+  // Sites at cell centres (side 1, the box starting at 0.5): one in each
+  // marked column, in a row of its own pattern, and the box's corners.
+  std::vector<Vec2> pts = {{0.5, 0.5}, {200.5, 10.5}};
+  for (uint32_t c : marked) {
+    pts.push_back({c + 0.5, (c * 7 % 11) + 0.5});
+    pts.push_back({c + 0.5, (c * 3 % 11) + 0.5});
+  }
+  std::sort(pts.begin(), pts.end(), [](const Vec2& a, const Vec2& b) {
+    return a.x != b.x ? a.x < b.x : a.y < b.y;
+  });
+  pts.erase(std::unique(pts.begin(), pts.end()), pts.end());
+  auto t = Triangulation::Create(pts);
+  ASSERT_TRUE(t.ok());
+  const TriangulationView v = t->view();
+  const auto ranked = CellIndex::Build(v, 1.0, Sparse());
+  CellIndex::Limits searched_limits = Sparse();
+  searched_limits.rank_rows = false;
+  const auto searched = CellIndex::Build(v, 1.0, searched_limits);
+  ASSERT_TRUE(ranked && searched);
+  ASSERT_TRUE(ranked->ranked());
+  size_t runs = 0;
+  for (uint32_t a : marked) {
+    for (uint32_t b : marked) {
+      if (b < a) continue;
+      for (int row = 0; row <= 10; ++row) {
+        // The square spans exactly columns a..b (and as many rows).
+        const double r = (b - a) / 2.0 + 0.25;
+        const Vec2 q{0.5 + (a + b + 1) / 2.0, row + 1.0};
+        const auto got = Runs(*ranked, q, r);
+        ASSERT_EQ(got, Runs(*searched, q, r))
+            << "columns " << a << ".." << b << " row " << row;
+        size_t scanned = 0;
+        ASSERT_EQ(FromRuns(*ranked, q, r, &scanned), Brute(v, q, r))
+            << "columns " << a << ".." << b << " row " << row;
+        runs += got.size();
+      }
+    }
+  }
   EXPECT_GT(runs, 0u);
 }
 

@@ -319,6 +319,8 @@ class MalformedAnswerTest(unittest.TestCase):
                         asyncio.run(ask())
                     self.assertEqual(e.exception.code,
                                      grpc.StatusCode.INTERNAL, chunk)
+                    self.assertIn("both as varints and fixed-width",
+                                  e.exception.message)
         finally:
             server.stop(None)
 
