@@ -211,12 +211,13 @@ int main(int argc, char** argv) {
       std::printf(
           "  device: %.1f MB across the bus in %.3f s, %llu device "
           "algorithms (%llu waited for), %llu resyncs, %llu passes over "
-          "the host mesh\n",
+          "the host mesh, %llu uploads of the host's changes alone\n",
           double(rep->transfer_bytes) * 1e-6, rep->transfer_seconds,
           (unsigned long long)rep->device_calls,
           (unsigned long long)rep->device_waits,
           (unsigned long long)rep->device_resyncs,
-          (unsigned long long)rep->device_fingerprint_passes);
+          (unsigned long long)rep->device_fingerprint_passes,
+          (unsigned long long)rep->device_patched_uploads);
     }
     std::fflush(stdout);
   }

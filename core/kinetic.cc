@@ -343,7 +343,8 @@ void KineticExecutor::Undo(Mesh& mesh, const FixLog& log) {
 
 void KineticExecutor::Legalize(Mesh& mesh, const std::vector<Vec2>& pos,
                                const std::vector<uint32_t>* seed_triangles,
-                               FlipScratch& scratch, FlipCounts* counts) {
+                               FlipScratch& scratch, FlipCounts* counts,
+                               std::vector<uint32_t>* flipped) {
   const MeshView m = mesh.view();
   const Vec2* p = pos.data();
   std::vector<uint32_t> work;
@@ -386,6 +387,12 @@ void KineticExecutor::Legalize(Mesh& mesh, const std::vector<Vec2>& pos,
     ParallelFor(0, winners.size(),
                 [&](size_t i) { m.Flip(edges[winners[i]]); });
     for (uint32_t w : winners) mesh.UpdateVertexEdgesAfterFlip(edges[w]);
+    if (flipped != nullptr) {
+      for (uint32_t w : winners) {
+        flipped->push_back(TriangleOf(edges[w]));
+        flipped->push_back(TriangleOf(m.twin[edges[w]]));
+      }
+    }
     // The flipped triangles (flips keep triangle ids) are marked in
     // tri_claim (kNoEdge between rounds) while the losers are sorted out.
     ParallelFor(0, winners.size(), [&](size_t i) {

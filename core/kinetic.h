@@ -127,9 +127,12 @@ class KineticExecutor {
 
   // Delaunay flips until every edge is locally Delaunay. Starts from all
   // edges of the triangles in `seed_triangles`, or from all edges if null.
+  // `flipped` (optional) receives the two triangles of every flip (with
+  // repeats).
   static void Legalize(Mesh& mesh, const std::vector<Vec2>& pos,
                        const std::vector<uint32_t>* seed_triangles,
-                       FlipScratch& scratch, FlipCounts* counts);
+                       FlipScratch& scratch, FlipCounts* counts,
+                       std::vector<uint32_t>* flipped = nullptr);
 
   // Triangles incident to the given vertices (sorted, unique).
   static std::vector<uint32_t> TrianglesAround(

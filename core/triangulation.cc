@@ -14,6 +14,7 @@
 #include <mutex>
 #include <numeric>
 #include <optional>
+#include <utility>
 
 #include "absl/strings/str_cat.h"
 #include "core/cell_index.h"
@@ -309,6 +310,27 @@ Triangulation Triangulation::Clone() const {
 
 void Triangulation::MeshChangedOnHost() {
   if (device_ != nullptr) device_->Invalidate();
+}
+
+void Triangulation::MeshChangedOnHostAt(const std::vector<uint32_t>& triangles,
+                                        const std::vector<uint32_t>& vertices) {
+  if (device_ == nullptr) return;
+  const MeshView m = std::as_const(mesh_).view();
+  const uint32_t nt = mesh_.num_triangles();
+  const uint32_t nv = mesh_.num_vertices();
+  std::vector<uint32_t> tris, verts(vertices);
+  tris.reserve(4 * triangles.size());
+  verts.reserve(vertices.size() + 3 * triangles.size());
+  for (uint32_t t : triangles) {
+    if (t >= nt) continue;
+    tris.push_back(t);
+    if (m.IsFree(t)) continue;
+    for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
+      if (m.twin[e] != kNoEdge) tris.push_back(TriangleOf(m.twin[e]));
+      if (m.origin[e] < nv) verts.push_back(m.origin[e]);
+    }
+  }
+  device_->ChangedOnHost(tris, verts);
 }
 
 uint64_t Triangulation::device_bytes() const {
@@ -632,6 +654,7 @@ absl::Status Triangulation::AttemptOnDevice(
   report->device_loop_returns += a->loop_returns;
   report->device_resyncs += a->resyncs;
   report->device_fingerprint_passes += a->fingerprint_passes;
+  report->device_patched_uploads += a->patched_uploads;
   if (a->cancelled) {
     *result = -1;
   } else if (a->tangled) {
@@ -785,7 +808,6 @@ bool Triangulation::SplitStep(std::vector<Vec2>& to,
 bool Triangulation::InsertBatch(std::vector<uint32_t> pending,
                                 const std::vector<uint32_t>& hints,
                                 StepReport* report) {
-  if (!pending.empty()) MeshChangedOnHost();
   std::sort(pending.begin(), pending.end());
   std::vector<uint32_t> owner;  // per triangle: inserting vertex this round
   while (!pending.empty()) {
@@ -865,7 +887,10 @@ bool Triangulation::InsertBatch(std::vector<uint32_t> pending,
                                         &touched, nullptr, nullptr)
             : KineticExecutor::Fix(mesh_, pos_, std::move(invalid), scratch_,
                                    &report->flips, &touched, nullptr, nullptr);
-    if (!fixed) return false;
+    if (!fixed) {
+      MeshChangedOnHost();
+      return false;
+    }
     std::vector<uint32_t> seeds =
         KineticExecutor::TrianglesAround(mesh_, inserted);
     seeds.insert(seeds.end(), touched.begin(), touched.end());
@@ -874,7 +899,11 @@ bool Triangulation::InsertBatch(std::vector<uint32_t> pending,
     if (regions) {
       RegionExecutor::LegalizeSerial(mesh_, pos_, seeds, &report->flips);
     } else {
-      KineticExecutor::Legalize(mesh_, pos_, &seeds, scratch_, &report->flips);
+      // The splits, fixing's and legalizing's flips: what the round
+      // changed (the device's copy takes only that).
+      KineticExecutor::Legalize(mesh_, pos_, &seeds, scratch_, &report->flips,
+                                &touched);
+      MeshChangedOnHostAt(touched, {});
     }
     pending = std::move(deferred);
   }
@@ -931,8 +960,10 @@ bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
     const auto t_remove = std::chrono::steady_clock::now();
     for (uint32_t v : to_remove) {
       if (ve[v] == kNoEdge) continue;
-      hints[v] = mesh_.view().Dest(ve[v]);
-      MeshChangedOnHost();
+      hints[v] = std::as_const(mesh_).view().Dest(ve[v]);
+      // The star's slots, the triangles around it and its vertices are all
+      // that the removal changes.
+      MeshChangedOnHostAt(KineticExecutor::TrianglesAround(mesh_, {v}), {v});
       if (!VertexOps::Remove(mesh_, pos_, v, &removal_touched_, nullptr)) {
         *reason = "could not remove a vertex for re-insertion";
         return false;
@@ -1046,8 +1077,10 @@ bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
         std::sort(holes.begin(), holes.end());
         holes.erase(std::unique(holes.begin(), holes.end()), holes.end());
         const auto t_legalize = std::chrono::steady_clock::now();
-        KineticExecutor::Legalize(mesh_, pos_, &holes, scratch_,
-                                  &report->flips);
+        std::vector<uint32_t> flipped;
+        KineticExecutor::Legalize(mesh_, pos_, &holes, scratch_, &report->flips,
+                                  &flipped);
+        MeshChangedOnHostAt(flipped, {});
         report->legalize_seconds += SecondsSince(t_legalize);
         break;
       }

@@ -173,6 +173,9 @@ struct StepReport {
   // (DeviceAttempt::fingerprint_passes): the first of a session, and those
   // after a change on the host (re-insertion, rebuild, renumbering).
   uint64_t device_fingerprint_passes = 0;
+  // Device executor: attempts that sent the host's changes (re-insertion)
+  // alone, not the whole mesh (DeviceAttempt::patched_uploads).
+  uint64_t device_patched_uploads = 0;
 };
 
 class Triangulation {
@@ -324,6 +327,16 @@ class Triangulation {
                     std::vector<uint32_t>* out) const;
   // The host changed mesh_ (the device copy must be uploaded again).
   void MeshChangedOnHost();
+  // The host changed only the half-edges of `triangles` (vertex operations,
+  // flips) and the vertex_edge entries of `vertices` (removed ones): the
+  // device's copy takes those triangles with their neighbours and the
+  // vertex_edge of their corners (DeviceExecutor::ChangedOnHost). Called
+  // after the change (a free slot is taken as it is); what an operation
+  // changes lies there: a half-edge outside `triangles` whose twin changed
+  // last pointed into one of them, a vertex whose vertex_edge changed is
+  // a corner of one.
+  void MeshChangedOnHostAt(const std::vector<uint32_t>& triangles,
+                           const std::vector<uint32_t>& vertices);
   // Coincident points whose positions in `next` leave their site: detached
   // from it (they are inserted again at the end of the step).
   std::vector<uint32_t> DetachPartingPoints(const std::vector<Vec2>& next);

@@ -16,10 +16,11 @@
 // mesh's content_version(), without a pass over it, unless something wrote
 // to it since) and the next step uploads only positions: the entries that
 // changed since the last attempt when they are at most a quarter, else all of
-// them. Whoever changes the host mesh otherwise (re-insertion, rebuild,
-// renumbering) calls Invalidate(); the next attempt uploads it again. Hold-back
-// decisions, re-insertion and rebuilds stay on the host (Triangulation), with
-// explicit transfers that the attempt reports.
+// them. Whoever changes the host mesh otherwise calls Invalidate() (a
+// rebuild, renumbering: the next attempt uploads it again) or names what it
+// changed with ChangedOnHost() (re-insertion: only those entries go up).
+// Hold-back decisions, re-insertion and rebuilds stay on the host
+// (Triangulation), with explicit transfers that the attempt reports.
 #ifndef KINETRI_CORE_DEVICE_DEVICE_EXECUTOR_H_
 #define KINETRI_CORE_DEVICE_DEVICE_EXECUTOR_H_
 
@@ -79,6 +80,9 @@ struct DeviceAttempt {
   // 1 when the fixed mesh came down as the half-edges and vertex_edge
   // entries it changed, not as the whole arrays.
   uint32_t patched_downloads = 0;
+  // 1 when the host's changes since the last attempt went up alone (the
+  // entries DeviceExecutor::ChangedOnHost named), not the whole mesh.
+  uint32_t patched_uploads = 0;
   // 1 when the host mesh was not the copy the device kept (a caller that
   // changed it without Invalidate(), which is a bug: the executor found it
   // by the mesh's fingerprint and uploaded the mesh again, so the attempt
@@ -158,6 +162,16 @@ class DeviceExecutor {
 
   // The host mesh changed outside Attempt(): upload it before the next one.
   virtual void Invalidate() = 0;
+  // The host changed only these triangles' half-edges (origin, twin) and
+  // these vertices' vertex_edge entries since the mesh was last the
+  // device's copy (the calls add up until the next attempt; repeats are
+  // allowed): the next attempt sends only them. It checks by the mesh's
+  // fingerprint that nothing else changed: a change left out costs an
+  // upload of the whole mesh (DeviceAttempt::resyncs), never a wrong mesh.
+  // More changes than an eighth of the mesh's entries: the whole mesh goes
+  // up. After Invalidate(), until the next attempt, it does nothing.
+  virtual void ChangedOnHost(absl::Span<const uint32_t> triangles,
+                             absl::Span<const uint32_t> vertices) = 0;
 
   // Moves to `to` on the device: finds the invalid triangles (all of them,
   // or among `candidates` when non-null), repairs them by fixing rounds

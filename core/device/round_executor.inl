@@ -269,6 +269,33 @@ struct AppendChanges {
   }
 };
 
+// The host's changes into the base (ChangedOnHost): entry index[k] (a
+// half-edge's origin and twin below ne, else vertex ne - index's
+// vertex_edge) takes value[2k], value[2k + 1], and value keeps the entry's
+// old contents in their place (indices are distinct).
+struct SwapInHostChanges {
+  uint32_t* origin;
+  uint32_t* twin;
+  uint32_t* vertex_edge;
+  uint32_t ne;
+  const uint32_t* index;
+  uint32_t* value;
+  KINETRI_HD void operator()(uint32_t k) const {
+    const uint32_t i = index[k];
+    const uint32_t a = value[2 * k];
+    if (i < ne) {
+      const uint32_t b = value[2 * k + 1];
+      value[2 * k] = origin[i];
+      value[2 * k + 1] = twin[i];
+      origin[i] = a;
+      twin[i] = b;
+    } else {
+      value[2 * k] = vertex_edge[i - ne];
+      vertex_edge[i - ne] = a;
+    }
+  }
+};
+
 // The three canonical edges of each seed triangle.
 struct TriangleEdges {
   MeshView m;
@@ -854,6 +881,23 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   void Invalidate() override {
     std::lock_guard<std::mutex> lock(attempt_mu_);
     host_changed_ = true;
+    ClearHostChanges();
+  }
+  void ChangedOnHost(absl::Span<const uint32_t> triangles,
+                     absl::Span<const uint32_t> vertices) override {
+    std::lock_guard<std::mutex> lock(attempt_mu_);
+    if (host_changed_) return;  // the whole mesh goes up anyway
+    host_triangles_.insert(host_triangles_.end(), triangles.begin(),
+                           triangles.end());
+    host_vertices_.insert(host_vertices_.end(), vertices.begin(),
+                          vertices.end());
+    // More entries than a patch holds (as a download's, an eighth of the
+    // mesh; repeats counted): the whole mesh goes up.
+    if (3 * host_triangles_.size() + host_vertices_.size() >
+        (base_origin_.size() + nv_) / 8) {
+      host_changed_ = true;
+      ClearHostChanges();
+    }
   }
   void set_loop_control(const LoopControl& control) override {
     std::lock_guard<std::mutex> lock(attempt_mu_);
@@ -925,7 +969,8 @@ class RoundDeviceExecutor final : public DeviceExecutor {
         "waited for %llu); %llu legalizing rounds in device loops (%llu "
         "handed back); fix "
         "%.3f s, legalize %.3f s, transfers %.3f s (%.1f MB up, %.1f MB "
-        "down; %llu of %llu mesh downloads carried only the changes)\n",
+        "down; %llu of %llu mesh downloads carried only the changes; %llu "
+        "host changes went up alone)\n",
         DeviceBackendName(backend_),
         static_cast<unsigned long long>(totals_.attempts),
         static_cast<unsigned long long>(totals_.counts.fix_rounds),
@@ -938,7 +983,8 @@ class RoundDeviceExecutor final : public DeviceExecutor {
         double(totals_.bytes_uploaded) * 1e-6,
         double(totals_.bytes_downloaded) * 1e-6,
         static_cast<unsigned long long>(totals_.patched_downloads),
-        static_cast<unsigned long long>(totals_.downloads));
+        static_cast<unsigned long long>(totals_.downloads),
+        static_cast<unsigned long long>(totals_.patched_uploads));
     std::fprintf(stderr,
                  "[device profile] time by call site (each algorithm and the "
                  "host work after it; line 0: before the first):\n");
@@ -1036,6 +1082,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     }
     clock_.Stop();
     host_changed_ = true;
+    ClearHostChanges();
     working_is_base_ = false;
     from_ready_ = false;
     pos_mirror_.valid = from_mirror_.valid = false;
@@ -1074,6 +1121,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     totals_.bytes_downloaded += out.bytes_downloaded;
     totals_.downloads += out.fixed ? 1 : 0;
     totals_.patched_downloads += out.patched_downloads;
+    totals_.patched_uploads += out.patched_uploads;
     if (DeviceProfileLevel() >= 2) {
       std::fprintf(stderr,
                    "[device profile] attempt: %llu device algorithms (%llu "
@@ -1118,15 +1166,30 @@ class RoundDeviceExecutor final : public DeviceExecutor {
         base_origin_.size() == mesh.num_half_edges() && nv_ == nv;
     uint64_t fingerprint = base_fingerprint_;
     if (host_changed_ || !same_shape || version != base_version_) {
+      const Mesh::FingerprintSums base_sums = base_sums_;
       base_sums_ = mesh.FingerprintParts();
       fingerprint = base_sums_.Combine();
       out.fingerprint_passes = 1;
-      if (!host_changed_ && same_shape && fingerprint != base_fingerprint_) {
-        out.resyncs = 1;
-        host_changed_ = true;
+      if (!host_changed_ && same_shape) {
+        // Changes the host declared (ChangedOnHost) go up alone; the base's
+        // sums followed through them must give the host mesh's fingerprint,
+        // else something changed that was not declared.
+        const int patch =
+            host_triangles_.empty() && host_vertices_.empty()
+                ? (fingerprint == base_fingerprint_ ? 1 : 0)
+                : UploadHostChanges(mesh, base_sums, fingerprint, &out);
+        if (patch == 0) {
+          out.resyncs = 1;
+          host_changed_ = true;
+        } else if (patch < 0) {
+          host_changed_ = true;
+        } else {
+          base_fingerprint_ = fingerprint;
+        }
       }
       base_version_ = version;
     }
+    ClearHostChanges();
     if (host_changed_ || !same_shape) {
       // The host mesh changed (or was never here): it becomes the base.
       base_fingerprint_ = fingerprint;
@@ -1236,6 +1299,85 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     base_twin_.swap(twin_);
     base_vertex_edge_.swap(vertex_edge_);
     return out;
+  }
+
+  // Sends the entries the host declared changed (ChangedOnHost: each
+  // triangle's three half-edges, each vertex's vertex_edge) into the base,
+  // bringing their old contents back to follow `base_sums` (the base's)
+  // through them. Returns 1 when the result is the host mesh (its sums
+  // give `fingerprint`), 0 when it is not (a change was not declared), -1
+  // when the changes are more than a patch holds. Either of the latter:
+  // the caller uploads the whole mesh.
+  int UploadHostChanges(const Mesh& mesh, Mesh::FingerprintSums base_sums,
+                        uint64_t fingerprint, DeviceAttempt* out) {
+    const uint32_t ne = mesh.num_half_edges();
+    const uint32_t nv = nv_;
+    const uint32_t cap = (ne + nv) / 8;
+    auto sort_unique = [](std::vector<uint32_t>& v) {
+      std::sort(v.begin(), v.end());
+      v.erase(std::unique(v.begin(), v.end()), v.end());
+    };
+    sort_unique(host_triangles_);
+    sort_unique(host_vertices_);
+    const size_t np = 3 * host_triangles_.size() + host_vertices_.size();
+    if (np > cap) return -1;
+    if (!host_triangles_.empty() && host_triangles_.back() >= ne / 3) return 0;
+    if (!host_vertices_.empty() && host_vertices_.back() >= nv) return 0;
+    ExactCapacity(&host_patch_index_, cap);
+    ExactCapacity(&host_patch_value_, 2ull * cap);
+    host_patch_index_.resize(np);
+    host_patch_value_.resize(2 * np);
+    const std::vector<uint32_t>& origin = mesh.origin();
+    const std::vector<uint32_t>& twin = mesh.twin();
+    const std::vector<uint32_t>& ve = mesh.vertex_edge();
+    size_t k = 0;
+    for (uint32_t t : host_triangles_) {
+      for (uint32_t e = 3 * t; e < 3 * t + 3; ++e, ++k) {
+        host_patch_index_[k] = e;
+        host_patch_value_[2 * k] = origin[e];
+        host_patch_value_[2 * k + 1] = twin[e];
+      }
+    }
+    for (uint32_t v : host_vertices_) {
+      host_patch_index_[k] = ne + v;
+      host_patch_value_[2 * k] = ve[v];
+      host_patch_value_[2 * k + 1] = 0;
+      ++k;
+    }
+    if (patch_index_.size() < cap) {
+      patch_index_.resize(cap);
+      patch_value_.resize(2ull * cap);
+    }
+    staging_.ToDevice(host_patch_index_.data(), np, Raw(patch_index_), stream_);
+    staging_.ToDevice(host_patch_value_.data(), 2 * np, Raw(patch_value_),
+                      stream_);
+    thr::for_each(A(), Count(0), Count(static_cast<uint32_t>(np)),
+                  SwapInHostChanges{Raw(base_origin_), Raw(base_twin_),
+                                    Raw(base_vertex_edge_), ne,
+                                    Raw(patch_index_), Raw(patch_value_)});
+    (void)P();  // the old contents' download waits for the swap
+    staging_.ToHost(Raw(patch_value_), 2 * np, host_patch_value_.data(),
+                    stream_);
+    for (k = 0; k < np; ++k) {
+      const uint32_t i = host_patch_index_[k];
+      if (i < ne) {
+        base_sums.Change(0, i, host_patch_value_[2 * k], origin[i]);
+        base_sums.Change(1, i, host_patch_value_[2 * k + 1], twin[i]);
+      } else {
+        base_sums.Change(2, i - ne, host_patch_value_[2 * k], ve[i - ne]);
+      }
+    }
+    out->bytes_uploaded += 12ull * np;
+    out->bytes_downloaded += 8ull * np;
+    working_is_base_ = false;
+    if (base_sums.Combine() != fingerprint) return 0;
+    out->patched_uploads = 1;
+    return 1;
+  }
+
+  void ClearHostChanges() {
+    host_triangles_.clear();
+    host_vertices_.clear();
   }
 
   // The policies of the Thrust algorithms below (temporaries from pool_):
@@ -1757,7 +1899,10 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   // loop_control_ against calls from other threads.
   mutable std::mutex attempt_mu_;
   LoopControl loop_control_;
-  bool host_changed_ = true;       // Invalidate(): the base is not the host's
+  bool host_changed_ = true;  // Invalidate(): the base is not the host's
+  // Otherwise, the triangles and vertices the host declared changed since
+  // the base was the host mesh (ChangedOnHost).
+  std::vector<uint32_t> host_triangles_, host_vertices_;
   uint64_t base_fingerprint_ = 0;  // Mesh::Fingerprint() of the base
   // The host mesh's content_version() when it was last the base.
   uint64_t base_version_ = 0;
@@ -1828,6 +1973,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     uint64_t bytes_downloaded = 0;
     uint64_t downloads = 0;
     uint64_t patched_downloads = 0;
+    uint64_t patched_uploads = 0;
   } totals_;
   FaultInjector faults_;  // DeviceExecutor::InjectFault
   QueryEngine queries_;   // the query view and the queries over it

@@ -361,6 +361,94 @@ std::optional<device::DeviceAttempt> AgainAsAFreshExecutor(
   return *std::move(again);
 }
 
+// The host names what it changed (ChangedOnHost): only those entries go
+// up, and the result is what a fresh executor gives from the changed mesh.
+// A change left out is caught by the fingerprint (the whole mesh goes up:
+// a resync); more changes than a patch holds send the whole mesh too.
+TEST(DeviceExecutor, ChangesNamedByTheHostGoUpAlone) {
+  const size_t n = 2000;
+  const std::vector<Vec2> pts = testing::UniformPoints(n, 52);
+  const std::vector<uint32_t> sites = AllSites(n);
+  Mesh m = BuildDelaunayWithCgal(pts, sites);
+  auto a = device::MakeDeviceExecutor(kBackend);
+  ASSERT_TRUE(a.ok());
+  auto r = (*a)->Attempt(m, pts, {}, nullptr, nullptr, 0.5, nullptr);
+  ASSERT_TRUE(r.ok() && r->fixed) << r.status();
+  const uint64_t whole_mesh =
+      8ull * m.num_half_edges() + 4ull * m.num_vertices();
+  uint32_t from = 0;
+  // 0: named with their neighbours and corners; 1: one triangle left out;
+  // 2: every triangle named (more than a patch holds).
+  for (int round = 0; round < 6; ++round) {
+    const int how = round % 3;
+    // Flip an interior edge whose quad is convex, on the host (legalizing
+    // flips it back).
+    const MeshView v = m.view();
+    uint32_t flipped = kNoEdge;
+    for (uint32_t e = from; e < v.num_half_edges && flipped == kNoEdge; ++e) {
+      const uint32_t f = v.twin[e];
+      if (e > f || v.IsGhost(e / 3) || v.IsGhost(f / 3)) continue;
+      const Vec2 &pa = pts[v.origin[e]], &pb = pts[v.Dest(e)],
+                 &pc = pts[v.Apex(e)], &pd = pts[v.Across(e)];
+      if (Orient2d(pc, pd, pa) < 0 && Orient2d(pd, pc, pb) < 0) {
+        v.Flip(e);
+        flipped = e;
+      }
+    }
+    ASSERT_NE(flipped, kNoEdge);
+    from = flipped + 991;
+    m.UpdateVertexEdgesAfterFlip(flipped);
+    std::vector<uint32_t> tris, verts;
+    for (uint32_t t : {flipped / 3, v.twin[flipped] / 3}) {
+      tris.push_back(t);
+      for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
+        tris.push_back(v.twin[e] / 3);
+        verts.push_back(v.origin[e]);
+      }
+    }
+    if (how == 1) {
+      tris.erase(std::remove(tris.begin(), tris.end(), flipped / 3),
+                 tris.end());
+    } else if (how == 2) {
+      tris.clear();
+      for (uint32_t t = 0; t < m.num_triangles(); ++t) tris.push_back(t);
+    }
+    // (Named in two calls: they add up.)
+    (*a)->ChangedOnHost(absl::MakeConstSpan(tris).subspan(0, 2), {});
+    (*a)->ChangedOnHost(absl::MakeConstSpan(tris).subspan(2), verts);
+    const std::string where = "round " + std::to_string(round);
+    const auto again = AgainAsAFreshExecutor(**a, m, pts, where);
+    ASSERT_TRUE(again.has_value());
+    ASSERT_TRUE(again->fixed) << where;
+    EXPECT_GE(again->counts.delaunay, 1u) << where;
+    EXPECT_EQ(again->fingerprint_passes, 1u) << where;
+    EXPECT_EQ(again->resyncs, how == 1 ? 1u : 0u) << where;
+    EXPECT_EQ(again->patched_uploads, how == 0 ? 1u : 0u) << where;
+    if (how == 0) {
+      EXPECT_LT(again->bytes_uploaded, whole_mesh / 20) << where;
+    } else {
+      EXPECT_GE(again->bytes_uploaded, whole_mesh) << where;
+    }
+    EXPECT_EQ(EdgeSet(m), EdgeSet(BuildDelaunayWithCgal(pts, sites))) << where;
+    // The device's copy is the host mesh: nothing to send, no pass.
+    auto still = (*a)->Attempt(m, pts, {}, nullptr, nullptr, 0.5, nullptr);
+    ASSERT_TRUE(still.ok() && still->fixed) << still.status();
+    EXPECT_EQ(still->resyncs, 0u) << where;
+    EXPECT_EQ(still->fingerprint_passes, 0u) << where;
+    EXPECT_EQ(still->bytes_uploaded, 0u) << where;
+  }
+  // After Invalidate() named changes are ignored: the whole mesh goes up.
+  (*a)->Invalidate();
+  const uint32_t one = 0;
+  (*a)->ChangedOnHost(absl::MakeConstSpan(&one, 1), {});
+  (void)m.view();
+  auto whole = (*a)->Attempt(m, pts, {}, nullptr, nullptr, 0.5, nullptr);
+  ASSERT_TRUE(whole.ok() && whole->fixed) << whole.status();
+  EXPECT_EQ(whole->patched_uploads, 0u);
+  EXPECT_EQ(whole->resyncs, 0u);
+  EXPECT_GE(whole->bytes_uploaded, whole_mesh);
+}
+
 // An attempt stopped inside a device loop (the token is polled between
 // checks) leaves the mesh as it was and no mark behind: taken again, the
 // attempt gives the mesh a fresh executor gives, half-edge for half-edge.
@@ -603,6 +691,38 @@ TEST(DeviceExecutor, StepsOnTheDeviceDoNotPassOverTheHostMesh) {
         << where;
   }
   EXPECT_GE(steps_on_device, 6u);
+}
+
+// Re-insertions change a few hundred triangles on the host: the next
+// attempt sends those (DeviceExecutor::ChangedOnHost), not the whole mesh,
+// and finds by the fingerprint that nothing else changed (no resync).
+TEST(DeviceExecutor, ReinsertionsGoUpAsTheirChangesAlone) {
+  const size_t n = 6000;
+  std::mt19937_64 rng(63);
+  auto t =
+      Triangulation::Create(testing::UniformPoints(n, 63), DeviceOptions());
+  ASSERT_TRUE(t.ok()) << t.status();
+  const double sigma = 0.1 / std::sqrt(double(n));
+  int followed = 0;
+  bool reinserted = false;
+  for (int s = 0; s < 30 && followed < 3; ++s) {
+    auto r = t->ApplyDisplacements(Brownian(n, sigma, rng));
+    ASSERT_TRUE(r.ok()) << r.status();
+    const std::string where = "step " + std::to_string(s);
+    EXPECT_EQ(r->device_resyncs, 0u) << where;
+    if (reinserted && r->path != UpdatePath::kRebuilt) {
+      // The previous step ended with re-insertions on the host.
+      EXPECT_GE(r->device_patched_uploads, 1u) << where;
+      ++followed;
+    }
+    reinserted =
+        r->reinserted > 0 && r->path != UpdatePath::kRebuilt && !r->renumbered;
+    ASSERT_TRUE(t->Validate().ok()) << where << t->Validate();
+    EXPECT_EQ(testing::EdgesAsPositions(*t),
+              testing::CgalDelaunayEdges(t->Positions()))
+        << where;
+  }
+  EXPECT_GE(followed, 3);
 }
 
 // A query whose device call fails is refused with RESOURCE_EXHAUSTED or
