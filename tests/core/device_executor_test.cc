@@ -17,6 +17,7 @@
 #include <optional>
 #include <random>
 #include <string>
+#include <utility>
 #include <vector>
 
 #if defined(KINETRI_TEST_CUDA)
@@ -337,6 +338,47 @@ device::DeviceQuery KnnOfPoints(absl::Span<const uint32_t> ids) {
 // Takes the attempt to `to` again with `a`, and with a fresh executor from
 // a copy of `m`: both must succeed and leave the same mesh, half-edge for
 // half-edge. Returns `a`'s result (nullopt after a failure, reported).
+// CGAL's Delaunay mesh of n uniform points, and an executor whose first
+// attempt (for the same positions) made it the device's copy (an error
+// status in `executor` when that failed).
+struct ResidentMesh {
+  ResidentMesh(size_t n, uint64_t seed)
+      : pts(testing::UniformPoints(n, seed)),
+        sites(AllSites(n)),
+        mesh(BuildDelaunayWithCgal(pts, sites)),
+        executor(device::MakeDeviceExecutor(kBackend)) {
+    if (!executor.ok()) return;
+    auto r =
+        (*executor)->Attempt(mesh, pts, {}, nullptr, nullptr, 0.5, nullptr);
+    if (!r.ok() || !r->fixed || r->resyncs != 0) {
+      executor = absl::InternalError("the first attempt failed");
+    }
+  }
+  std::vector<Vec2> pts;
+  std::vector<uint32_t> sites;
+  Mesh mesh;
+  absl::StatusOr<std::unique_ptr<device::DeviceExecutor>> executor;
+};
+
+// Flips, on the host, the first interior edge at or after half-edge `from`
+// whose quad is convex: still a triangulation of `pts`, no longer Delaunay
+// (legalizing flips it back), and not the device's copy. Returns the edge,
+// or kNoEdge when there is none (vertex_edge is left to the caller).
+uint32_t FlipAConvexQuad(Mesh& m, const std::vector<Vec2>& pts, uint32_t from) {
+  const MeshView v = m.view();
+  for (uint32_t e = from; e < v.num_half_edges; ++e) {
+    const uint32_t f = v.twin[e];
+    if (e > f || v.IsGhost(e / 3) || v.IsGhost(f / 3)) continue;
+    const Vec2 &pa = pts[v.origin[e]], &pb = pts[v.Dest(e)],
+               &pc = pts[v.Apex(e)], &pd = pts[v.Across(e)];
+    if (Orient2d(pc, pd, pa) < 0 && Orient2d(pd, pc, pb) < 0) {
+      v.Flip(e);
+      return e;
+    }
+  }
+  return kNoEdge;
+}
+
 std::optional<device::DeviceAttempt> AgainAsAFreshExecutor(
     device::DeviceExecutor& a, Mesh& m, absl::Span<const Vec2> to,
     const std::string& where) {
@@ -366,14 +408,9 @@ std::optional<device::DeviceAttempt> AgainAsAFreshExecutor(
 // A change left out is caught by the fingerprint (the whole mesh goes up:
 // a resync); more changes than a patch holds send the whole mesh too.
 TEST(DeviceExecutor, ChangesNamedByTheHostGoUpAlone) {
-  const size_t n = 2000;
-  const std::vector<Vec2> pts = testing::UniformPoints(n, 52);
-  const std::vector<uint32_t> sites = AllSites(n);
-  Mesh m = BuildDelaunayWithCgal(pts, sites);
-  auto a = device::MakeDeviceExecutor(kBackend);
-  ASSERT_TRUE(a.ok());
-  auto r = (*a)->Attempt(m, pts, {}, nullptr, nullptr, 0.5, nullptr);
-  ASSERT_TRUE(r.ok() && r->fixed) << r.status();
+  ResidentMesh res(2000, 52);
+  ASSERT_TRUE(res.executor.ok()) << res.executor.status();
+  auto& [pts, sites, m, a] = res;
   const uint64_t whole_mesh =
       8ull * m.num_half_edges() + 4ull * m.num_vertices();
   uint32_t from = 0;
@@ -383,21 +420,11 @@ TEST(DeviceExecutor, ChangesNamedByTheHostGoUpAlone) {
     const int how = round % 3;
     // Flip an interior edge whose quad is convex, on the host (legalizing
     // flips it back).
-    const MeshView v = m.view();
-    uint32_t flipped = kNoEdge;
-    for (uint32_t e = from; e < v.num_half_edges && flipped == kNoEdge; ++e) {
-      const uint32_t f = v.twin[e];
-      if (e > f || v.IsGhost(e / 3) || v.IsGhost(f / 3)) continue;
-      const Vec2 &pa = pts[v.origin[e]], &pb = pts[v.Dest(e)],
-                 &pc = pts[v.Apex(e)], &pd = pts[v.Across(e)];
-      if (Orient2d(pc, pd, pa) < 0 && Orient2d(pd, pc, pb) < 0) {
-        v.Flip(e);
-        flipped = e;
-      }
-    }
+    const uint32_t flipped = FlipAConvexQuad(m, pts, from);
     ASSERT_NE(flipped, kNoEdge);
     from = flipped + 991;
     m.UpdateVertexEdgesAfterFlip(flipped);
+    const MeshView v = std::as_const(m).view();
     std::vector<uint32_t> tris, verts;
     for (uint32_t t : {flipped / 3, v.twin[flipped] / 3}) {
       tris.push_back(t);
@@ -573,34 +600,17 @@ TEST(DeviceExecutor, AFailedDeviceCallLeavesTheMeshAsItWas) {
 // mesh again (resyncs 1) and gives what a fresh executor gives from the
 // changed mesh. Told, it does not count a resync.
 TEST(DeviceExecutor, AMeshChangedBehindItsBackIsUploadedAgain) {
-  const size_t n = 2000;
-  const std::vector<Vec2> pts = testing::UniformPoints(n, 51);
-  const std::vector<uint32_t> sites = AllSites(n);
-  Mesh m = BuildDelaunayWithCgal(pts, sites);
-  auto a = device::MakeDeviceExecutor(kBackend);
-  ASSERT_TRUE(a.ok());
   // The points stay where they are: each round's host change is one flip
   // to the other diagonal of a convex quad, which legalizing flips back.
-  auto r = (*a)->Attempt(m, pts, {}, nullptr, nullptr, 0.5, nullptr);
-  ASSERT_TRUE(r.ok() && r->fixed) << r.status();
-  EXPECT_EQ(r->resyncs, 0u);
+  ResidentMesh res(2000, 51);
+  ASSERT_TRUE(res.executor.ok()) << res.executor.status();
+  auto& [pts, sites, m, a] = res;
   uint32_t from = 0;
   for (int round = 0; round < 4; ++round) {
     // Flip an interior edge whose quad is convex, on the host: still a
     // triangulation of the points, no longer Delaunay, and not the
     // device's copy.
-    const MeshView v = m.view();
-    uint32_t flipped = kNoEdge;
-    for (uint32_t e = from; e < v.num_half_edges && flipped == kNoEdge; ++e) {
-      const uint32_t f = v.twin[e];
-      if (e > f || v.IsGhost(e / 3) || v.IsGhost(f / 3)) continue;
-      const Vec2 &pa = pts[v.origin[e]], &pb = pts[v.Dest(e)],
-                 &pc = pts[v.Apex(e)], &pd = pts[v.Across(e)];
-      if (Orient2d(pc, pd, pa) < 0 && Orient2d(pd, pc, pb) < 0) {
-        v.Flip(e);
-        flipped = e;
-      }
-    }
+    const uint32_t flipped = FlipAConvexQuad(m, pts, from);
     ASSERT_NE(flipped, kNoEdge);
     from = flipped + 997;
     m.RebuildVertexEdges();
@@ -635,19 +645,7 @@ TEST(DeviceExecutor, AMeshChangedBehindItsBackIsUploadedAgain) {
   auto on_copy = (*a)->Attempt(copy, pts, {}, nullptr, nullptr, 0.5, nullptr);
   ASSERT_TRUE(on_copy.ok() && on_copy->fixed) << on_copy.status();
   EXPECT_EQ(on_copy->fingerprint_passes, 0u);
-  const uint32_t e = [&] {
-    const MeshView v = copy.view();
-    for (uint32_t e = 0; e < v.num_half_edges; ++e) {
-      const uint32_t f = v.twin[e];
-      if (v.IsGhost(e / 3) || v.IsGhost(f / 3)) continue;
-      const Vec2 &pa = pts[v.origin[e]], &pb = pts[v.Dest(e)],
-                 &pc = pts[v.Apex(e)], &pd = pts[v.Across(e)];
-      if (Orient2d(pc, pd, pa) < 0 && Orient2d(pd, pc, pb) < 0) return e;
-    }
-    return kNoEdge;
-  }();
-  ASSERT_NE(e, kNoEdge);
-  copy.view().Flip(e);
+  ASSERT_NE(FlipAConvexQuad(copy, pts, 0), kNoEdge);
   copy.RebuildVertexEdges();
   auto changed = (*a)->Attempt(copy, pts, {}, nullptr, nullptr, 0.5, nullptr);
   ASSERT_TRUE(changed.ok() && changed->fixed) << changed.status();
