@@ -331,7 +331,8 @@ class Triangulation {
   // flips) and the vertex_edge entries of `vertices` (removed ones): the
   // device's copy takes those triangles with their neighbours and the
   // vertex_edge of their corners (DeviceExecutor::ChangedOnHost). Called
-  // after the change (a free slot is taken as it is); what an operation
+  // after the change (a free slot is taken as it is), or before it with
+  // every triangle it will write (a removal: the star); what an operation
   // changes lies there: a half-edge outside `triangles` whose twin changed
   // last pointed into one of them, a vertex whose vertex_edge changed is
   // a corner of one.

@@ -887,17 +887,28 @@ class RoundDeviceExecutor final : public DeviceExecutor {
                      absl::Span<const uint32_t> vertices) override {
     std::lock_guard<std::mutex> lock(attempt_mu_);
     if (host_changed_) return;  // the whole mesh goes up anyway
-    host_triangles_.insert(host_triangles_.end(), triangles.begin(),
-                           triangles.end());
-    host_vertices_.insert(host_vertices_.end(), vertices.begin(),
-                          vertices.end());
-    // More entries than a patch holds (as a download's, an eighth of the
-    // mesh; repeats counted): the whole mesh goes up.
-    if (3 * host_triangles_.size() + host_vertices_.size() >
-        (base_origin_.size() + nv_) / 8) {
-      host_changed_ = true;
-      ClearHostChanges();
+    // More distinct entries than a patch holds (as a download's, an eighth
+    // of the mesh): the whole mesh goes up. The lists are made unique when
+    // repeats take them over that, so they stay within twice of it.
+    const size_t cap = (base_origin_.size() + nv_) / 8;
+    auto over = [&] {
+      return 3 * host_triangles_.size() + host_vertices_.size() > cap;
+    };
+    if (3 * triangles.size() + vertices.size() <= cap) {
+      host_triangles_.insert(host_triangles_.end(), triangles.begin(),
+                             triangles.end());
+      host_vertices_.insert(host_vertices_.end(), vertices.begin(),
+                            vertices.end());
+      if (over()) {
+        SortUnique(host_triangles_);
+        SortUnique(host_vertices_);
+      }
+      if (!over()) return;
     }
+    host_changed_ = true;
+    ClearHostChanges();
+    host_triangles_.shrink_to_fit();
+    host_vertices_.shrink_to_fit();
   }
   void set_loop_control(const LoopControl& control) override {
     std::lock_guard<std::mutex> lock(attempt_mu_);
@@ -940,6 +951,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
             host_change_value_.capacity()) *
                sizeof(Vec2) +
            (host_change_index_.capacity() + host_patch_index_.capacity() +
+            host_triangles_.capacity() + host_vertices_.capacity() +
             host_patch_value_.capacity() + host_origin_.capacity() +
             host_twin_.capacity() + host_vertex_edge_.capacity()) *
                sizeof(uint32_t) +
@@ -1305,7 +1317,9 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   // triangle's three half-edges, each vertex's vertex_edge) into the base,
   // bringing their old contents back to follow `base_sums` (the base's)
   // through them. Returns 1 when the result is the host mesh (its sums
-  // give `fingerprint`), 0 when it is not (a change was not declared), -1
+  // give `fingerprint`), 0 when it is not (a change was not declared, or
+  // one was named out of range: a caller's bug either way, counted as a
+  // resync), -1
   // when the changes are more than a patch holds. Either of the latter:
   // the caller uploads the whole mesh.
   int UploadHostChanges(const Mesh& mesh, Mesh::FingerprintSums base_sums,
@@ -1313,12 +1327,8 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     const uint32_t ne = mesh.num_half_edges();
     const uint32_t nv = nv_;
     const uint32_t cap = (ne + nv) / 8;
-    auto sort_unique = [](std::vector<uint32_t>& v) {
-      std::sort(v.begin(), v.end());
-      v.erase(std::unique(v.begin(), v.end()), v.end());
-    };
-    sort_unique(host_triangles_);
-    sort_unique(host_vertices_);
+    SortUnique(host_triangles_);
+    SortUnique(host_vertices_);
     const size_t np = 3 * host_triangles_.size() + host_vertices_.size();
     if (np > cap) return -1;
     if (!host_triangles_.empty() && host_triangles_.back() >= ne / 3) return 0;
@@ -1375,6 +1385,10 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     return 1;
   }
 
+  static void SortUnique(std::vector<uint32_t>& v) {
+    std::sort(v.begin(), v.end());
+    v.erase(std::unique(v.begin(), v.end()), v.end());
+  }
   void ClearHostChanges() {
     host_triangles_.clear();
     host_vertices_.clear();
