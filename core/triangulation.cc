@@ -749,7 +749,7 @@ bool Triangulation::TryStep(std::vector<Vec2>& to,
   // Vertices of the triangles fixing could not repair: candidates for
   // re-insertion if splitting the step does not help.
   {
-    const MeshView m = mesh_.view();
+    const MeshView m = std::as_const(mesh_).view();
     for (uint32_t t : stuck) {
       for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
         const uint32_t v = m.origin[e];
@@ -1121,7 +1121,7 @@ bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
       }
     }
     if (!exhausted) {
-      const MeshView mv = mesh_.view();
+      const MeshView mv = std::as_const(mesh_).view();
       bool held_any = false;
       for (uint32_t v : stuck) {
         if (v == kNoVertex || ve[v] == kNoEdge) continue;

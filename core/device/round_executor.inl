@@ -1317,10 +1317,9 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   // triangle's three half-edges, each vertex's vertex_edge) into the base,
   // bringing their old contents back to follow `base_sums` (the base's)
   // through them. Returns 1 when the result is the host mesh (its sums
-  // give `fingerprint`), 0 when it is not (a change was not declared, or
+  // give `fingerprint`); 0 when it is not (a change was not declared, or
   // one was named out of range: a caller's bug either way, counted as a
-  // resync), -1
-  // when the changes are more than a patch holds. Either of the latter:
+  // resync); -1 when the changes are more than a patch holds. On 0 and -1
   // the caller uploads the whole mesh.
   int UploadHostChanges(const Mesh& mesh, Mesh::FingerprintSums base_sums,
                         uint64_t fingerprint, DeviceAttempt* out) {
