@@ -95,10 +95,15 @@ std::optional<Vec2> HalfwayGoal(const Vec2& a, const Vec2& b) {
 }
 
 // Every point at site v (v and the duplicates chained after it, all at
-// one position) gets the goal g.
+// one position) gets the goal g; the entries written are appended to
+// *written when it is not null.
 void SetSiteGoal(const std::vector<uint32_t>& dup_next, uint32_t v,
-                 const Vec2& g, std::vector<Vec2>& goal) {
-  for (uint32_t p = v; p != kNoVertex; p = dup_next[p]) goal[p] = g;
+                 const Vec2& g, std::vector<Vec2>& goal,
+                 std::vector<uint32_t>* written) {
+  for (uint32_t p = v; p != kNoVertex; p = dup_next[p]) {
+    goal[p] = g;
+    if (written != nullptr) written->push_back(p);
+  }
 }
 
 }  // namespace
@@ -619,9 +624,10 @@ void Triangulation::Renumber() {
 
 void Triangulation::KeepHeldBack(const std::vector<uint32_t>& held,
                                  std::vector<Vec2>& to,
-                                 std::vector<uint32_t>* out) const {
+                                 std::vector<uint32_t>* out,
+                                 std::vector<uint32_t>* written) const {
   for (uint32_t v : held) {
-    SetSiteGoal(dup_next_, v, pos_[v], to);
+    SetSiteGoal(dup_next_, v, pos_[v], to, written);
     out->push_back(v);
   }
 }
@@ -630,11 +636,19 @@ absl::Status Triangulation::AttemptOnDevice(
     std::vector<Vec2>& to, const std::vector<uint32_t>* moved,
     const std::vector<uint32_t>* seeds, const CancelToken* cancel,
     StepReport* report, std::vector<uint32_t>* stuck_vertices,
-    std::vector<uint32_t>* held, int* result) {
+    std::vector<uint32_t>* held, PositionWrites* writes, int* result) {
   motion_filter_.Invalidate();
   std::vector<uint32_t> candidates;
   if (moved != nullptr) {
     candidates = KineticExecutor::CandidateTriangles(mesh_, *moved);
+  }
+  // What changed in `to` and pos_ since the last attempt, when the caller
+  // followed it: the attempt looks for positions to send there alone.
+  if (writes != nullptr) {
+    if (writes->known) device_->PositionsWrittenAt(writes->to, writes->from);
+    writes->to.clear();
+    writes->from.clear();
+    writes->known = true;
   }
   absl::StatusOr<device::DeviceAttempt> a =
       device_->Attempt(mesh_, to,
@@ -643,7 +657,7 @@ absl::Status Triangulation::AttemptOnDevice(
                        moved != nullptr ? &candidates : nullptr, seeds,
                        options_.round.rebuild_fraction, cancel);
   if (!a.ok()) return a.status();
-  KeepHeldBack(a->held, to, held);
+  KeepHeldBack(a->held, to, held, writes != nullptr ? &writes->to : nullptr);
   report->fix_seconds += a->fix_seconds;
   report->legalize_seconds += a->legalize_seconds;
   report->transfer_seconds += a->transfer_seconds;
@@ -675,11 +689,13 @@ bool Triangulation::TryStep(std::vector<Vec2>& to,
                             const std::vector<uint32_t>* seeds, int depth,
                             const CancelToken* cancel, StepReport* report,
                             std::vector<uint32_t>* stuck_vertices,
-                            std::vector<uint32_t>* held) {
+                            std::vector<uint32_t>* held,
+                            PositionWrites* writes) {
   if (device_ != nullptr) {
     int result = 0;
-    const absl::Status st = AttemptOnDevice(to, moved, seeds, cancel, report,
-                                            stuck_vertices, held, &result);
+    const absl::Status st =
+        AttemptOnDevice(to, moved, seeds, cancel, report, stuck_vertices, held,
+                        writes, &result);
     if (!st.ok()) device_failure_ = std::string(st.message());
     if (!st.ok() || result == -2) {
       too_tangled_ = true;  // device error or tangled: rebuild on the host
@@ -689,10 +705,12 @@ bool Triangulation::TryStep(std::vector<Vec2>& to,
     if (result == 1) {
       if (moved == nullptr) {
         pos_ = to;
+        if (writes != nullptr) writes->known = false;  // (every entry)
       } else {
         for (uint32_t v : *moved) {
           for (uint32_t p = v; p != kNoVertex; p = dup_next_[p]) {
             pos_[p] = to[p];
+            if (writes != nullptr) writes->from.push_back(p);
           }
         }
       }
@@ -701,6 +719,8 @@ bool Triangulation::TryStep(std::vector<Vec2>& to,
     }
     ++report->failed_attempts;
     if (depth >= options_.round.max_subdivision_depth) return false;
+    // The halves' attempts send other arrays: the next one compares all.
+    if (writes != nullptr) writes->known = false;
     return SplitStep(to, moved, seeds, depth, cancel, report, stuck_vertices,
                      held);
   }
@@ -721,7 +741,7 @@ bool Triangulation::TryStep(std::vector<Vec2>& to,
   const bool fixed = KineticExecutor::Fix(
       mesh_, to, std::move(invalid), scratch_, &counts, &touched, &log, &stuck,
       options_.round.hold_culprits ? &hold : nullptr);
-  KeepHeldBack(hold.held, to, held);
+  KeepHeldBack(hold.held, to, held, nullptr);
   report->fix_seconds += SecondsSince(t0);
   t0 = std::chrono::steady_clock::now();
   if (fixed) {
@@ -797,12 +817,12 @@ bool Triangulation::SplitStep(std::vector<Vec2>& to,
   };
   if (seeds != nullptr) seed();
   if (!TryStep(mid, moved, seeds ? &seeds_now : nullptr, depth + 1, cancel,
-               report, stuck_vertices, held)) {
+               report, stuck_vertices, held, nullptr)) {
     return false;
   }
   if (seeds != nullptr) seed();
   return TryStep(to, moved, seeds ? &seeds_now : nullptr, depth + 1, cancel,
-                 report, stuck_vertices, held);
+                 report, stuck_vertices, held, nullptr);
 }
 
 bool Triangulation::InsertBatch(std::vector<uint32_t> pending,
@@ -942,8 +962,34 @@ bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
   const auto& ve = mesh_.vertex_edge();
   std::vector<Vec2> goal = next;
   std::vector<uint32_t> active = moved_points;  // candidates still to move
+  // The device executor is told what changes in `goal` and pos_ between
+  // its attempts (from the second one on), so that a sparse attempt does
+  // not compare both arrays whole on the host.
+  PositionWrites device_writes;
+  PositionWrites* const writes = device_ != nullptr ? &device_writes : nullptr;
   auto set_goal = [&](uint32_t v, const Vec2& g) {
-    SetSiteGoal(dup_next_, v, g, goal);
+    SetSiteGoal(dup_next_, v, g, goal,
+                writes != nullptr ? &writes->to : nullptr);
+  };
+  // The points not at `next` yet, ascending: a pass over every point the
+  // first time, then over the last list (a point that arrived stays: its
+  // goal is `next`, which it never leaves in this step), so that a stuck
+  // attempt late in the step does not pass over the whole array.
+  std::vector<uint32_t> unarrived;
+  bool unarrived_known = false;
+  auto all_unarrived = [&] {
+    if (!unarrived_known) {
+      for (uint32_t i = 0; i < n; ++i) {
+        if (next[i] != pos_[i]) unarrived.push_back(i);
+      }
+      unarrived_known = true;
+    } else {
+      unarrived.erase(
+          std::remove_if(unarrived.begin(), unarrived.end(),
+                         [&](uint32_t i) { return next[i] == pos_[i]; }),
+          unarrived.end());
+    }
+    return unarrived;
   };
   // Removes vertices (sorted, unique) for re-insertion at the end of the
   // step, within the re-insertion budget; false (with *reason) when it is
@@ -996,7 +1042,7 @@ bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
     too_tangled_ = false;
     const bool passed =
         TryStep(goal, sparse ? &moved : nullptr, sparse ? &seeds : nullptr, 0,
-                cancel, report, &stuck, &held_in_fix);
+                cancel, report, &stuck, &held_in_fix, writes);
     report->held_vertices += static_cast<uint32_t>(held_in_fix.size());
     // Vertices fixing held back (hold_culprits), whether or not the attempt
     // passed, take half of their remaining motion when they resume (a
@@ -1141,10 +1187,7 @@ bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
       }
       if (held_any) {
         ++report->local_halvings;
-        active.clear();
-        for (uint32_t i = 0; i < n; ++i) {
-          if (next[i] != pos_[i]) active.push_back(i);
-        }
+        active = all_unarrived();
         continue;
       }
     }
@@ -1198,10 +1241,7 @@ bool Triangulation::LocalUpdate(std::vector<Vec2>& next,
       return false;
     }
     // The next attempt moves every vertex whose goal is not reached yet.
-    active.clear();
-    for (uint32_t i = 0; i < n; ++i) {
-      if (next[i] != pos_[i]) active.push_back(i);
-    }
+    active = all_unarrived();
   }
   removal_touched_.clear();
   // 3. Insert removed vertices and detached points at their new positions.

@@ -301,11 +301,20 @@ class Triangulation {
   // Vertices that fixing held back (RoundStepPolicy::hold_culprits) get
   // their old positions in `to` (their whole site) and are appended to
   // *held, whether or not the attempt passed.
+  //
+  // What the update loop wrote to its goal (`to`) and to pos_ between two
+  // device attempts (DeviceExecutor::PositionsWrittenAt): the writes of
+  // TryStep are added to it. `known` false: not tracked (the next attempt
+  // compares the whole arrays).
+  struct PositionWrites {
+    bool known = false;
+    std::vector<uint32_t> to, from;
+  };
   bool TryStep(std::vector<Vec2>& to, const std::vector<uint32_t>* moved,
                const std::vector<uint32_t>* seeds, int depth,
                const CancelToken* cancel, StepReport* report,
                std::vector<uint32_t>* stuck_vertices,
-               std::vector<uint32_t>* held);
+               std::vector<uint32_t>* held, PositionWrites* writes);
   // TryStep's second half: the step split in two halves (depth + 1).
   bool SplitStep(std::vector<Vec2>& to, const std::vector<uint32_t>* moved,
                  const std::vector<uint32_t>* seeds, int depth,
@@ -314,17 +323,20 @@ class Triangulation {
                  std::vector<uint32_t>* held);
   // TryStep's attempt on the device executor: *result 1 fixed, 0 stuck
   // (stuck_vertices filled), -1 cancelled, -2 too tangled (rebuild); held
-  // as TryStep's.
+  // and writes as TryStep's.
   absl::Status AttemptOnDevice(std::vector<Vec2>& to,
                                const std::vector<uint32_t>* moved,
                                const std::vector<uint32_t>* seeds,
                                const CancelToken* cancel, StepReport* report,
                                std::vector<uint32_t>* stuck_vertices,
-                               std::vector<uint32_t>* held, int* result);
+                               std::vector<uint32_t>* held,
+                               PositionWrites* writes, int* result);
   // The vertices fixing held back go back to pos_ in `to`, with their
-  // coincident points, and are appended to *out.
+  // coincident points, and are appended to *out; the entries of `to` it
+  // wrote are appended to *written when it is not null.
   void KeepHeldBack(const std::vector<uint32_t>& held, std::vector<Vec2>& to,
-                    std::vector<uint32_t>* out) const;
+                    std::vector<uint32_t>* out,
+                    std::vector<uint32_t>* written) const;
   // The host changed mesh_ (the device copy must be uploaded again).
   void MeshChangedOnHost();
   // The host changed only the half-edges of `triangles` (vertex operations,

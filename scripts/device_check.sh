@@ -119,9 +119,10 @@ fi
 if want 1; then
 # 1. The typed suites on the CUDA backend, one after the other (processes
 #    sharing a GPU are time-sliced, which would blur the timings), each
-#    with the executor's profile at its end.
+#    with the executor's profile at its end and the caller's promises
+#    checked, as ctest runs them (core/device/checks.h).
 for s in ${SUITES:-device_predicates device_executor kinetic queries join_leave randomized}; do
-  KINETRI_DEVICE_PROFILE=2 timeout "$TEST_S" "$B/tests/${s}_cuda_test" \
+  KINETRI_DEVICE_CHECK=1 KINETRI_DEVICE_PROFILE=2 timeout "$TEST_S" "$B/tests/${s}_cuda_test" \
     --gtest_output="xml:$O/${s}.xml" > "$O/${s}.log" 2>&1
   rc=$?
   passed=$(grep -c '^\[       OK \]' "$O/${s}.log")

@@ -70,4 +70,20 @@ bool ChangedPositions(absl::Span<const Vec2> now, absl::Span<const Vec2> mirror,
   return true;
 }
 
+bool ChangedPositionsAt(absl::Span<const Vec2> now,
+                        absl::Span<const Vec2> mirror,
+                        absl::Span<const uint32_t> written, size_t most,
+                        std::vector<uint32_t>* index,
+                        std::vector<Vec2>* value) {
+  index->clear();
+  value->clear();
+  for (const uint32_t i : written) {
+    if (!Differs(now[i], mirror[i])) continue;
+    if (index->size() == most) return false;
+    index->push_back(i);
+    value->push_back(now[i]);
+  }
+  return true;
+}
+
 }  // namespace kinetri::core::device

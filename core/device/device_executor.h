@@ -86,7 +86,9 @@ struct DeviceAttempt {
   // 1 when the host mesh was not the copy the device kept (a caller that
   // changed it without Invalidate(), which is a bug: the executor found it
   // by the mesh's fingerprint and uploaded the mesh again, so the attempt
-  // is still exact).
+  // is still exact), or when, with KINETRI_DEVICE_CHECK=1, the caller wrote
+  // a position that PositionsWrittenAt did not name (found by the whole
+  // comparison and sent).
   uint32_t resyncs = 0;
   // 1 when the attempt checked the host mesh by a pass over it
   // (Mesh::Fingerprint): its first attempt, or after Invalidate() or a
@@ -172,6 +174,21 @@ class DeviceExecutor {
   // up. After Invalidate(), until the next attempt, it does nothing.
   virtual void ChangedOnHost(absl::Span<const uint32_t> triangles,
                              absl::Span<const uint32_t> vertices) = 0;
+  // Before an attempt: since the previous attempt, the caller wrote its
+  // `to` array only at the entries `to` and its `from` array only at the
+  // entries `from` (the calls add up until the next attempt; repeats, and
+  // entries written with their old values, are allowed). The next attempt
+  // then looks for the positions to send among these entries alone (at 1M
+  // points a sparse attempt otherwise passes over both arrays on the host,
+  // about 32 MB each). An attempt without such a call before it compares
+  // the whole arrays, and so does one whose arrays are not those the
+  // previous attempt was given (another size, a device failure since).
+  // The lists are a promise: a written entry left out is not sent. With
+  // KINETRI_DEVICE_CHECK=1 (core/device/checks.h, the test suites) each
+  // promise is checked by the whole comparison, and a broken one is
+  // repaired and counted in DeviceAttempt::resyncs.
+  virtual void PositionsWrittenAt(absl::Span<const uint32_t> to,
+                                  absl::Span<const uint32_t> from) = 0;
 
   // Moves to `to` on the device: finds the invalid triangles (all of them,
   // or among `candidates` when non-null), repairs them by fixing rounds

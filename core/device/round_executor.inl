@@ -55,6 +55,7 @@
 #include "absl/strings/str_cat.h"
 #include "core/device/atomic.h"
 #include "core/device/changed_positions.h"
+#include "core/device/checks.h"
 #include "core/device/device_executor.h"
 #include "core/device/device_queries.inl"
 #include "core/device/profile.h"
@@ -910,6 +911,14 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     host_triangles_.shrink_to_fit();
     host_vertices_.shrink_to_fit();
   }
+  void PositionsWrittenAt(absl::Span<const uint32_t> to,
+                          absl::Span<const uint32_t> from) override {
+    std::lock_guard<std::mutex> lock(attempt_mu_);
+    written_called_ = true;
+    // (More than a sparse upload sends: the whole comparison is cheaper.)
+    to_written_.Add(to, pos_mirror_.values.size() / 4);
+    from_written_.Add(from, from_mirror_.values.size() / 4);
+  }
   void set_loop_control(const LoopControl& control) override {
     std::lock_guard<std::mutex> lock(attempt_mu_);
     loop_control_ = control;
@@ -950,7 +959,8 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     return (pos_mirror_.values.capacity() + from_mirror_.values.capacity() +
             host_change_value_.capacity()) *
                sizeof(Vec2) +
-           (host_change_index_.capacity() + host_patch_index_.capacity() +
+           (to_written_.entries.capacity() + from_written_.entries.capacity() +
+            host_change_index_.capacity() + host_patch_index_.capacity() +
             host_triangles_.capacity() + host_vertices_.capacity() +
             host_patch_value_.capacity() + host_origin_.capacity() +
             host_twin_.capacity() + host_vertex_edge_.capacity()) *
@@ -1098,6 +1108,8 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     working_is_base_ = false;
     from_ready_ = false;
     pos_mirror_.valid = from_mirror_.valid = false;
+    to_written_.Forget();
+    from_written_.Forget();
     for (U32Vector* v : {&tri_claim_, &vert_claim_, &last_, &queued_, &held_}) {
       v->clear();
     }
@@ -1224,7 +1236,15 @@ class RoundDeviceExecutor final : public DeviceExecutor {
       vertex_edge_.assign(base_vertex_edge_.begin(), base_vertex_edge_.end());
       working_is_base_ = true;
     }
-    out.bytes_uploaded += UploadChanged(to, pos_, pos_mirror_);
+    // Positions the caller did not describe since the last attempt are
+    // compared whole (PositionsWrittenAt).
+    if (!written_called_) {
+      to_written_.Forget();
+      from_written_.Forget();
+    }
+    written_called_ = false;
+    out.bytes_uploaded +=
+        UploadChanged(to, pos_, pos_mirror_, to_written_, &out);
     from_host_ = from.size() == to.size() ? from : absl::Span<const Vec2>();
     from_ready_ = false;
     held_.clear();
@@ -1488,19 +1508,66 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     bool valid = false;  // false: the device array is not known
   };
 
+  // The entries of a host array of positions written since its mirror was
+  // sent, as PositionsWrittenAt names them.
+  struct Written {
+    std::vector<uint32_t> entries;
+    // Whether `entries` holds every write since the mirror was sent.
+    bool known = false;
+    void Add(absl::Span<const uint32_t> more, size_t most) {
+      if (!known) return;
+      if (entries.size() + more.size() > most) {
+        Forget();
+        return;
+      }
+      entries.insert(entries.end(), more.begin(), more.end());
+    }
+    void Forget() {
+      known = false;
+      entries.clear();
+    }
+    void Restart() {  // the mirror was sent: nothing written since
+      known = true;
+      entries.clear();
+    }
+  };
+
   // Makes `device` hold `host`, sending only the entries that differ from
   // the mirror when they are at most a quarter (a sparse step's few moving
   // vertices, where the whole array would cross the bus every attempt),
-  // else the whole array. Returns the bytes sent.
+  // else the whole array. The entries that differ are looked for among
+  // those `written` names when it knows them, else by a pass over both
+  // arrays. Returns the bytes sent.
   uint64_t UploadChanged(absl::Span<const Vec2> host,
-                         thr::device_vector<Vec2>& device, Mirror& mirror) {
+                         thr::device_vector<Vec2>& device, Mirror& mirror,
+                         Written& written, DeviceAttempt* out) {
     const size_t n = host.size();
     if (mirror.valid && mirror.values.size() == n && device.size() == n) {
       const size_t most = n / 4;
       ExactCapacity(&host_change_index_, most);
       ExactCapacity(&host_change_value_, most);
-      if (ChangedPositions(host, absl::MakeConstSpan(mirror.values), most,
-                           &host_change_index_, &host_change_value_)) {
+      const absl::Span<const Vec2> old = mirror.values;
+      bool found = false;
+      if (written.known) {
+        std::vector<uint32_t>& w = written.entries;
+        std::sort(w.begin(), w.end());
+        w.erase(std::unique(w.begin(), w.end()), w.end());
+        found = (w.empty() || w.back() < n) &&
+                ChangedPositionsAt(host, old, w, most, &host_change_index_,
+                                   &host_change_value_);
+        if (found && DeviceChecksOn()) {
+          // The whole comparison must find nothing more.
+          std::vector<uint32_t> index;
+          std::vector<Vec2> value;
+          if (!ChangedPositions(host, old, most, &index, &value) ||
+              index != host_change_index_) {
+            out->resyncs = 1;
+            found = false;
+          }
+        }
+      }
+      if (found || ChangedPositions(host, old, most, &host_change_index_,
+                                    &host_change_value_)) {
         const size_t nc = host_change_index_.size();
         mirror.valid = false;  // until the scatter is through
         if (nc > 0) {
@@ -1517,6 +1584,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
           }
         }
         mirror.valid = true;
+        written.Restart();
         return (sizeof(uint32_t) + sizeof(Vec2)) * nc;
       }
     }
@@ -1525,6 +1593,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     ExactCapacity(&mirror.values, n);
     mirror.values.assign(host.begin(), host.end());
     mirror.valid = true;
+    written.Restart();
     return sizeof(Vec2) * n;
   }
 
@@ -1845,7 +1914,8 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     if (from_host_.empty()) return false;
     if (!from_ready_) {
       const auto t0 = std::chrono::steady_clock::now();
-      out->bytes_uploaded += UploadChanged(from_host_, from_, from_mirror_);
+      out->bytes_uploaded +=
+          UploadChanged(from_host_, from_, from_mirror_, from_written_, out);
       out->transfer_seconds += Since(t0);
       from_ready_ = true;
     }
@@ -1937,6 +2007,10 @@ class RoundDeviceExecutor final : public DeviceExecutor {
   // What pos_ and from_ hold, so that an attempt sends only the positions
   // that changed (UploadChanged), and the changes on their way up.
   Mirror pos_mirror_, from_mirror_;
+  // What the caller wrote to them since they were sent (PositionsWrittenAt),
+  // and whether it said so before this attempt.
+  Written to_written_, from_written_;
+  bool written_called_ = false;
   std::vector<uint32_t> host_change_index_;
   std::vector<Vec2> host_change_value_;
   U32Vector change_index_;

@@ -92,5 +92,49 @@ TEST(ChangedPositions, MoreThanMostIsRefused) {
   EXPECT_EQ(index.back(), 199998u);
 }
 
+// Looking only where the caller wrote: the changed entries among them, in
+// their order; an entry written with its old value is no change; more than
+// `most` changes are refused.
+TEST(ChangedPositions, AtTheWrittenEntriesOnly) {
+  std::mt19937_64 rng(3);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  const size_t n = 5000;
+  std::vector<Vec2> mirror(n);
+  for (Vec2& p : mirror) p = {u(rng), u(rng)};
+  std::vector<Vec2> now = mirror;
+  std::vector<uint32_t> written;
+  std::vector<uint32_t> want_index;
+  std::vector<Vec2> want_value;
+  for (uint32_t i = 7; i < n; i += 13) {
+    written.push_back(i);
+    if (i % 2 == 0) continue;  // written with its old value
+    now[i].y = std::nextafter(now[i].y, 2.0);
+    want_index.push_back(i);
+    want_value.push_back(now[i]);
+  }
+  std::vector<uint32_t> index;
+  std::vector<Vec2> value;
+  ASSERT_TRUE(ChangedPositionsAt(now, mirror, written, n, &index, &value));
+  EXPECT_EQ(index, want_index);
+  ASSERT_EQ(value.size(), want_value.size());
+  for (size_t k = 0; k < value.size(); ++k) {
+    EXPECT_EQ(std::memcmp(&value[k], &want_value[k], sizeof(Vec2)), 0);
+  }
+  // The whole pass agrees.
+  std::vector<uint32_t> all_index;
+  std::vector<Vec2> all_value;
+  ASSERT_TRUE(ChangedPositions(now, mirror, n, &all_index, &all_value));
+  EXPECT_EQ(all_index, want_index);
+  // A change outside the list is not seen there (the caller's promise).
+  now[0].x += 1.0;
+  ASSERT_TRUE(ChangedPositionsAt(now, mirror, written, n, &index, &value));
+  EXPECT_EQ(index, want_index);
+  // At most `most`.
+  EXPECT_FALSE(ChangedPositionsAt(now, mirror, written, want_index.size() - 1,
+                                  &index, &value));
+  EXPECT_TRUE(ChangedPositionsAt(now, mirror, written, want_index.size(),
+                                 &index, &value));
+}
+
 }  // namespace
 }  // namespace kinetri::core::device
