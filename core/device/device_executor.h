@@ -176,14 +176,17 @@ class DeviceExecutor {
                              absl::Span<const uint32_t> vertices) = 0;
   // Before an attempt: since the previous attempt, the caller wrote its
   // `to` array only at the entries `to` and its `from` array only at the
-  // entries `from` (the calls add up until the next attempt; repeats, and
+  // entries `from` (the calls add up until the next attempt to run, which
+  // for the _async forms is the next to take the executor's lock; repeats, and
   // entries written with their old values, are allowed). The next attempt
   // then looks for the positions to send among these entries alone (at 1M
   // points a sparse attempt otherwise passes over both arrays on the host,
   // about 32 MB each). An attempt without such a call before it compares
-  // the whole arrays, and so does one whose arrays are not those the
-  // previous attempt was given (another size, a device failure since).
-  // The lists are a promise: a written entry left out is not sent. With
+  // the whole arrays, and so does one after a device failure or whose
+  // arrays have another size than the previous attempt's. The lists are a
+  // promise: a written entry left out is not sent, and so is a position of
+  // another array of the same size (the caller that passes `to` or `from`
+  // arrays other than the previous attempt's makes no call). With
   // KINETRI_DEVICE_CHECK=1 (core/device/checks.h, the test suites) each
   // promise is checked by the whole comparison, and a broken one is
   // repaired and counted in DeviceAttempt::resyncs.
@@ -286,8 +289,9 @@ class DeviceExecutor {
 inline constexpr uint64_t kDeviceBytesPerPoint = 256;
 // Upper bound of the host memory the device executor holds per point
 // beside the host mesh (host_bytes(): two position mirrors, 32 bytes; the
-// download arrays, ~52; the largest patch and change lists, ~16: about
-// 100, each array kept within a quarter over its size), plus
+// download arrays, ~52; the largest patch and change lists, ~16; the
+// lists of written positions, a quarter of the points each, at most 4:
+// about 104, each array kept within a quarter over its size), plus
 // DeviceHostFixedBytes of staging (pinned on CUDA); checked with the
 // above. The server admits a device session's host memory with them.
 inline constexpr uint64_t kDeviceHostBytesPerPoint = 128;

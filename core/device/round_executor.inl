@@ -1036,6 +1036,10 @@ class RoundDeviceExecutor final : public DeviceExecutor {
                             rebuild_fraction, cancel);
       });
     } catch (const std::exception& e) {  // no event, or no thread
+      // The positions named for this attempt are not known to any other:
+      // the next one compares whole arrays.
+      std::lock_guard<std::mutex> lock(attempt_mu_);
+      ForgetWrittenPositions();
       return Ready<DeviceAttempt>(absl::InternalError(
           absl::StrCat("device executor: AttemptAsync: ", e.what())));
     }
@@ -1108,8 +1112,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     working_is_base_ = false;
     from_ready_ = false;
     pos_mirror_.valid = from_mirror_.valid = false;
-    to_written_.Forget();
-    from_written_.Forget();
+    ForgetWrittenPositions();
     for (U32Vector* v : {&tri_claim_, &vert_claim_, &last_, &queued_, &held_}) {
       v->clear();
     }
@@ -1238,10 +1241,7 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     }
     // Positions the caller did not describe since the last attempt are
     // compared whole (PositionsWrittenAt).
-    if (!written_called_) {
-      to_written_.Forget();
-      from_written_.Forget();
-    }
+    if (!written_called_) ForgetWrittenPositions();
     written_called_ = false;
     out.bytes_uploaded +=
         UploadChanged(to, pos_, pos_mirror_, to_written_, &out);
@@ -1508,8 +1508,15 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     bool valid = false;  // false: the device array is not known
   };
 
+  void ForgetWrittenPositions() {
+    to_written_.Forget();
+    from_written_.Forget();
+    written_called_ = false;
+  }
+
   // The entries of a host array of positions written since its mirror was
-  // sent, as PositionsWrittenAt names them.
+  // sent, as PositionsWrittenAt names them (at most a quarter of the
+  // array's entries, or none).
   struct Written {
     std::vector<uint32_t> entries;
     // Whether `entries` holds every write since the mirror was sent.
