@@ -1,7 +1,7 @@
 // KINETRI_DEVICE_CHECK, read once per process (docs/DEVICE.md): unset or 0,
 // the device executor trusts what its caller tells it about the host's
-// arrays (DeviceExecutor::PositionsWrittenAt); 1, it checks each such
-// promise by a pass of its own, and a broken one costs a whole comparison
+// arrays (DeviceExecutor::PositionsWrittenAt, ChangedOnHost); 1, it checks each
+// such promise by a pass of its own, and a broken one costs a whole comparison
 // and counts as a resync (DeviceAttempt::resyncs), which the device test
 // suites require to be zero. The tests run with it; a service does not.
 // Host code only.

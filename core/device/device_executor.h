@@ -87,13 +87,16 @@ struct DeviceAttempt {
   // changed it without Invalidate(), which is a bug: the executor found it
   // by the mesh's fingerprint and uploaded the mesh again, so the attempt
   // is still exact), or when, with KINETRI_DEVICE_CHECK=1, the caller wrote
-  // a position that PositionsWrittenAt did not name (found by the whole
-  // comparison and sent).
+  // a position that PositionsWrittenAt did not name or a mesh entry that
+  // ChangedOnHost did not name (found by the whole comparison or the
+  // fingerprint, and sent).
   uint32_t resyncs = 0;
   // 1 when the attempt checked the host mesh by a pass over it
   // (Mesh::Fingerprint): its first attempt, or after Invalidate() or a
-  // change of the mesh's content_version(). 0 when the host mesh is known
-  // to be the device's copy (nothing wrote to it since).
+  // change of the mesh's content_version() that ChangedOnHost did not name
+  // (named ones are checked so only with KINETRI_DEVICE_CHECK=1). 0 when
+  // the host mesh is known to be the device's copy (nothing wrote to it
+  // since) or its changes were named.
   uint32_t fingerprint_passes = 0;
 };
 
@@ -167,11 +170,15 @@ class DeviceExecutor {
   // The host changed only these triangles' half-edges (origin, twin) and
   // these vertices' vertex_edge entries since the mesh was last the
   // device's copy (the calls add up until the next attempt; repeats are
-  // allowed): the next attempt sends only them. It checks by the mesh's
-  // fingerprint that nothing else changed: a change left out costs an
-  // upload of the whole mesh (DeviceAttempt::resyncs), never a wrong mesh.
-  // More changes than an eighth of the mesh's entries: the whole mesh goes
-  // up. After Invalidate(), until the next attempt, it does nothing.
+  // allowed): the next attempt sends only them, without a pass over the
+  // host mesh. The lists are a promise, as PositionsWrittenAt's are: a
+  // change left out leaves the device's copy wrong. With
+  // KINETRI_DEVICE_CHECK=1 (core/device/checks.h, the test suites) the
+  // attempt checks by the mesh's fingerprint that nothing else changed,
+  // and a change left out costs an upload of the whole mesh
+  // (DeviceAttempt::resyncs). More changes than an eighth of the mesh's
+  // entries: the whole mesh goes up. After Invalidate(), until the next
+  // attempt, it does nothing.
   virtual void ChangedOnHost(absl::Span<const uint32_t> triangles,
                              absl::Span<const uint32_t> vertices) = 0;
   // Before an attempt: since the previous attempt, the caller wrote its

@@ -1181,40 +1181,69 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     const uint32_t nv = mesh.num_vertices();
     // The base must be the host mesh. While the mesh's content_version()
     // is the one the base was made from, nothing has written to it (every
-    // writing access renews the number): no check is needed. Otherwise it
-    // is checked by fingerprint (a parallel pass over the host arrays,
-    // Mesh::Fingerprint, 6-9 ms at 1M points on 2 cores), so that a caller that
-    // changed the mesh without Invalidate() costs an upload, not a wrong
-    // mesh, and one that only took a writing view costs the pass. The
-    // base's sums are kept: the download follows them through the entries
-    // it changes (DownloadResult), without a second pass.
+    // writing access renews the number): no check is needed. Changes the
+    // host named (ChangedOnHost) are a promise, as the positions' lists
+    // are: they go up alone, and the base's fingerprint sums follow them
+    // without a pass over the host mesh. Otherwise, and for every named
+    // upload under KINETRI_DEVICE_CHECK=1 (checks.h), the mesh is checked
+    // by fingerprint (a parallel pass over the host arrays,
+    // Mesh::Fingerprint, 6-9 ms at 1M points on 2 cores), so that a caller
+    // that changed the mesh without Invalidate() costs an upload, not a
+    // wrong mesh, and one that only took a writing view costs the pass.
+    // The base's sums are kept: the download follows them through the
+    // entries it changes (DownloadResult), without a second pass.
     const uint64_t version = mesh.content_version();
     const bool same_shape =
         base_origin_.size() == mesh.num_half_edges() && nv_ == nv;
     uint64_t fingerprint = base_fingerprint_;
     if (host_changed_ || !same_shape || version != base_version_) {
-      const Mesh::FingerprintSums base_sums = base_sums_;
-      base_sums_ = mesh.FingerprintParts();
-      fingerprint = base_sums_.Combine();
-      out.fingerprint_passes = 1;
-      if (!host_changed_ && same_shape) {
-        // Changes the host declared (ChangedOnHost) go up alone; the base's
-        // sums followed through them must give the host mesh's fingerprint,
-        // else something changed that was not declared.
-        const int patch =
-            host_triangles_.empty() && host_vertices_.empty()
-                ? (fingerprint == base_fingerprint_ ? 1 : 0)
-                : UploadHostChanges(mesh, base_sums, fingerprint, &out);
-        if (patch == 0) {
-          out.resyncs = 1;
-          host_changed_ = true;
-        } else if (patch < 0) {
-          host_changed_ = true;
+      const bool named = !host_triangles_.empty() || !host_vertices_.empty();
+      bool trusted = false;
+      if (!host_changed_ && same_shape && named && !DeviceChecksOn()) {
+        Mesh::FingerprintSums sums = base_sums_;
+        const int patch = UploadHostChanges(mesh, &sums, &out);
+        if (patch > 0) {
+          base_sums_ = sums;
+          fingerprint = base_fingerprint_ = sums.Combine();
+          out.patched_uploads = 1;
+          base_version_ = version;
+          trusted = true;
         } else {
-          base_fingerprint_ = fingerprint;
+          // Out of range (a caller's bug: a resync) or more than a patch
+          // holds: the whole mesh goes up, after the pass below.
+          out.resyncs = patch == 0 ? 1 : 0;
+          host_changed_ = true;
         }
       }
-      base_version_ = version;
+      if (!trusted) {
+        Mesh::FingerprintSums followed = base_sums_;
+        base_sums_ = mesh.FingerprintParts();
+        fingerprint = base_sums_.Combine();
+        out.fingerprint_passes = 1;
+        if (!host_changed_ && same_shape) {
+          // The named changes go up alone; the base's sums followed
+          // through them must give the host mesh's fingerprint, else
+          // something changed that was not named.
+          int patch = named ? UploadHostChanges(mesh, &followed, &out)
+                            : (fingerprint == base_fingerprint_ ? 1 : 0);
+          if (named && patch > 0) {
+            if (followed.Combine() == fingerprint) {
+              out.patched_uploads = 1;
+            } else {
+              patch = 0;
+            }
+          }
+          if (patch == 0) {
+            out.resyncs = 1;
+            host_changed_ = true;
+          } else if (patch < 0) {
+            host_changed_ = true;
+          } else {
+            base_fingerprint_ = fingerprint;
+          }
+        }
+        base_version_ = version;
+      }
     }
     ClearHostChanges();
     if (host_changed_ || !same_shape) {
@@ -1333,16 +1362,16 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     return out;
   }
 
-  // Sends the entries the host declared changed (ChangedOnHost: each
+  // Sends the entries the host named changed (ChangedOnHost: each
   // triangle's three half-edges, each vertex's vertex_edge) into the base,
-  // bringing their old contents back to follow `base_sums` (the base's)
-  // through them. Returns 1 when the result is the host mesh (its sums
-  // give `fingerprint`); 0 when it is not (a change was not declared, or
-  // one was named out of range: a caller's bug either way, counted as a
-  // resync); -1 when the changes are more than a patch holds. On 0 and -1
-  // the caller uploads the whole mesh.
-  int UploadHostChanges(const Mesh& mesh, Mesh::FingerprintSums base_sums,
-                        uint64_t fingerprint, DeviceAttempt* out) {
+  // bringing their old contents back to follow `sums` (the base's) through
+  // them. Returns 1 when they went up (then the base is the host mesh if
+  // nothing else changed: the caller may check `sums` against a pass); 0
+  // when one was named out of range (a caller's bug) and -1 when they are
+  // more than a patch holds, both before anything is sent: the caller then
+  // uploads the whole mesh.
+  int UploadHostChanges(const Mesh& mesh, Mesh::FingerprintSums* sums,
+                        DeviceAttempt* out) {
     const uint32_t ne = mesh.num_half_edges();
     const uint32_t nv = nv_;
     const uint32_t cap = (ne + nv) / 8;
@@ -1390,17 +1419,15 @@ class RoundDeviceExecutor final : public DeviceExecutor {
     for (k = 0; k < np; ++k) {
       const uint32_t i = host_patch_index_[k];
       if (i < ne) {
-        base_sums.Change(0, i, host_patch_value_[2 * k], origin[i]);
-        base_sums.Change(1, i, host_patch_value_[2 * k + 1], twin[i]);
+        sums->Change(0, i, host_patch_value_[2 * k], origin[i]);
+        sums->Change(1, i, host_patch_value_[2 * k + 1], twin[i]);
       } else {
-        base_sums.Change(2, i - ne, host_patch_value_[2 * k], ve[i - ne]);
+        sums->Change(2, i - ne, host_patch_value_[2 * k], ve[i - ne]);
       }
     }
     out->bytes_uploaded += 12ull * np;
     out->bytes_downloaded += 8ull * np;
     working_is_base_ = false;
-    if (base_sums.Combine() != fingerprint) return 0;
-    out->patched_uploads = 1;
     return 1;
   }
 
