@@ -171,9 +171,9 @@ struct StepReport {
   uint64_t device_resyncs = 0;
   // Device executor: attempts that checked the host mesh by a pass over it
   // (DeviceAttempt::fingerprint_passes): the first of a session, and those
-  // after a change on the host that it did not name (rebuild,
-  // renumbering; re-insertions' named changes too with
-  // KINETRI_DEVICE_CHECK=1).
+  // after a change on the host that it did not name or named beyond a
+  // patch (rebuild, renumbering, the compaction after removals; re-
+  // insertions' named changes too with KINETRI_DEVICE_CHECK=1).
   uint64_t device_fingerprint_passes = 0;
   // Device executor: attempts that sent the host's changes (re-insertion)
   // alone, not the whole mesh (DeviceAttempt::patched_uploads).

@@ -92,11 +92,12 @@ struct DeviceAttempt {
   // fingerprint, and sent).
   uint32_t resyncs = 0;
   // 1 when the attempt checked the host mesh by a pass over it
-  // (Mesh::Fingerprint): its first attempt, or after Invalidate() or a
-  // change of the mesh's content_version() that ChangedOnHost did not name
-  // (named ones are checked so only with KINETRI_DEVICE_CHECK=1). 0 when
-  // the host mesh is known to be the device's copy (nothing wrote to it
-  // since) or its changes were named.
+  // (Mesh::Fingerprint): its first attempt, after Invalidate() or a change
+  // of the mesh's shape, or after a change of its content_version() with no
+  // ChangedOnHost names pending or with names it could not use (more than
+  // a patch holds, out of range); named changes are checked so only with
+  // KINETRI_DEVICE_CHECK=1. 0 when the host mesh is known to be the
+  // device's copy (nothing wrote to it since) or its changes were named.
   uint32_t fingerprint_passes = 0;
 };
 
@@ -172,7 +173,8 @@ class DeviceExecutor {
   // device's copy (the calls add up until the next attempt; repeats are
   // allowed): the next attempt sends only them, without a pass over the
   // host mesh. The lists are a promise, as PositionsWrittenAt's are: a
-  // change left out leaves the device's copy wrong. With
+  // change left out, or the next attempt made on another mesh (without
+  // Invalidate()), leaves the device's copy wrong. With
   // KINETRI_DEVICE_CHECK=1 (core/device/checks.h, the test suites) the
   // attempt checks by the mesh's fingerprint that nothing else changed,
   // and a change left out costs an upload of the whole mesh
