@@ -1197,53 +1197,44 @@ class RoundDeviceExecutor final : public DeviceExecutor {
         base_origin_.size() == mesh.num_half_edges() && nv_ == nv;
     uint64_t fingerprint = base_fingerprint_;
     if (host_changed_ || !same_shape || version != base_version_) {
-      const bool named = !host_triangles_.empty() || !host_vertices_.empty();
-      bool trusted = false;
-      if (!host_changed_ && same_shape && named && !DeviceChecksOn()) {
-        Mesh::FingerprintSums sums = base_sums_;
-        const int patch = UploadHostChanges(mesh, &sums, &out);
-        if (patch > 0) {
-          base_sums_ = sums;
-          fingerprint = base_fingerprint_ = sums.Combine();
-          out.patched_uploads = 1;
-          base_version_ = version;
-          trusted = true;
-        } else {
-          // Out of range (a caller's bug: a resync) or more than a patch
-          // holds: the whole mesh goes up, after the pass below.
+      // Named changes go up alone, the base's sums followed through them.
+      // 1: they did; 0: none to send, or one out of range (a caller's bug:
+      // a resync); -1: more than a patch holds. Below 1, with a name, the
+      // whole mesh goes up.
+      int patch = 0;
+      Mesh::FingerprintSums followed = base_sums_;
+      if (!host_changed_ && same_shape &&
+          (!host_triangles_.empty() || !host_vertices_.empty())) {
+        patch = UploadHostChanges(mesh, &followed, &out);
+        if (patch <= 0) {
           out.resyncs = patch == 0 ? 1 : 0;
           host_changed_ = true;
         }
       }
-      if (!trusted) {
-        Mesh::FingerprintSums followed = base_sums_;
+      if (patch > 0 && !DeviceChecksOn()) {
+        base_sums_ = followed;  // trusted: no pass
+        fingerprint = base_fingerprint_ = followed.Combine();
+        out.patched_uploads = 1;
+      } else {
         base_sums_ = mesh.FingerprintParts();
         fingerprint = base_sums_.Combine();
         out.fingerprint_passes = 1;
         if (!host_changed_ && same_shape) {
-          // The named changes go up alone; the base's sums followed
-          // through them must give the host mesh's fingerprint, else
-          // something changed that was not named.
-          int patch = named ? UploadHostChanges(mesh, &followed, &out)
-                            : (fingerprint == base_fingerprint_ ? 1 : 0);
-          if (named && patch > 0) {
-            if (followed.Combine() == fingerprint) {
-              out.patched_uploads = 1;
-            } else {
-              patch = 0;
-            }
-          }
-          if (patch == 0) {
+          // The followed sums (or, with nothing named, the base's) must
+          // give the host mesh's fingerprint, else something changed that
+          // was not named.
+          const uint64_t expected =
+              patch > 0 ? followed.Combine() : base_fingerprint_;
+          if (expected == fingerprint) {
+            out.patched_uploads = patch > 0 ? 1 : 0;
+            base_fingerprint_ = fingerprint;
+          } else {
             out.resyncs = 1;
             host_changed_ = true;
-          } else if (patch < 0) {
-            host_changed_ = true;
-          } else {
-            base_fingerprint_ = fingerprint;
           }
         }
-        base_version_ = version;
       }
+      base_version_ = version;
     }
     ClearHostChanges();
     if (host_changed_ || !same_shape) {
