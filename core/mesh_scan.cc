@@ -64,19 +64,22 @@ __attribute__((always_inline)) inline int InCircleFilteredNotLegal(
   return (legal[0] ? 0 : 1) | (legal[1] ? 0 : 2) | (legal[2] ? 0 : 4);
 }
 
-}  // namespace
-
-KINETRI_VECTOR_CLONES void ScanTriangles(const MeshView& m, const Vec2* pos,
-                                         uint32_t lo, uint32_t hi,
-                                         std::vector<uint32_t>* invalid,
-                                         std::vector<uint32_t>* illegal) {
+// The scan, reading the apex across each edge from `across` (kAcross) or
+// from the mesh (origin[Prev(twin[e])]).
+template <bool kAcross>
+__attribute__((always_inline)) inline void ScanBody(
+    const MeshView& m, const Vec2* pos, const uint32_t* across, uint32_t lo,
+    uint32_t hi, std::vector<uint32_t>* invalid,
+    std::vector<uint32_t>* illegal) {
   // The loads that miss the cache are the apexes across the edges
   // (origin[Prev(twin[e])], in a neighbour that may lie far away in slot
   // order) and their positions: both are prefetched ahead, the apex ids
   // kFar triangles ahead, their positions kNear ahead (once the ids are
-  // in cache).
+  // in cache). With `across` the ids are read in slot order, next to the
+  // triangle's own; only the positions are prefetched.
   constexpr uint32_t kFar = 16, kNear = 8;
   auto prefetch_apexes = [&](uint32_t u) {
+    if constexpr (kAcross) return;
     for (uint32_t k = 0; k < 3; ++k) {
       const uint32_t f = m.twin[3 * u + k];
       if (f < m.num_half_edges) __builtin_prefetch(&m.origin[Prev(f)]);
@@ -84,6 +87,11 @@ KINETRI_VECTOR_CLONES void ScanTriangles(const MeshView& m, const Vec2* pos,
   };
   auto prefetch_apex_positions = [&](uint32_t u) {
     for (uint32_t k = 0; k < 3; ++k) {
+      if constexpr (kAcross) {
+        const uint32_t d = across[3 * u + k];
+        if (d < kInfiniteVertex) __builtin_prefetch(&pos[d]);
+        continue;
+      }
       const uint32_t f = m.twin[3 * u + k];
       if (f >= m.num_half_edges) continue;
       const uint32_t d = m.origin[Prev(f)];
@@ -124,7 +132,7 @@ KINETRI_VECTOR_CLONES void ScanTriangles(const MeshView& m, const Vec2* pos,
     bool finite[3];
     Vec2 qd[3];
     for (uint32_t k = 0; k < 3; ++k) {
-      d[k] = m.origin[Prev(m.twin[3 * t + k])];
+      d[k] = kAcross ? across[3 * t + k] : m.origin[Prev(m.twin[3 * t + k])];
       finite[k] = d[k] != kInfiniteVertex;
       qd[k] = pos[finite[k] ? d[k] : v[0]];
     }
@@ -140,6 +148,29 @@ KINETRI_VECTOR_CLONES void ScanTriangles(const MeshView& m, const Vec2* pos,
         }
       }
     }
+  }
+}
+
+}  // namespace
+
+KINETRI_VECTOR_CLONES void ScanTriangles(const MeshView& m, const Vec2* pos,
+                                         uint32_t lo, uint32_t hi,
+                                         std::vector<uint32_t>* invalid,
+                                         std::vector<uint32_t>* illegal) {
+  ScanBody<false>(m, pos, nullptr, lo, hi, invalid, illegal);
+}
+
+KINETRI_VECTOR_CLONES void ScanTriangles(const MeshView& m, const Vec2* pos,
+                                         const uint32_t* across, uint32_t lo,
+                                         uint32_t hi,
+                                         std::vector<uint32_t>* invalid,
+                                         std::vector<uint32_t>* illegal) {
+  ScanBody<true>(m, pos, across, lo, hi, invalid, illegal);
+}
+
+void FillAcross(const MeshView& m, uint32_t lo, uint32_t hi, uint32_t* across) {
+  for (uint32_t e = 3 * lo; e < 3 * hi; ++e) {
+    across[e] = m.origin[e] == kNoVertex ? kNoVertex : m.Across(e);
   }
 }
 

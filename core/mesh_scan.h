@@ -27,6 +27,20 @@ void ScanTriangles(const MeshView& m, const Vec2* pos, uint32_t lo, uint32_t hi,
                    std::vector<uint32_t>* invalid,
                    std::vector<uint32_t>* illegal);
 
+// The same scan, with the apex across each half-edge e read from
+// across[e] (== m.Across(e), as FillAcross writes it) instead of from
+// origin[Prev(twin[e])]: the loads of a triangle's apexes then lie next to
+// its own vertices instead of in its neighbours' slots, which a dense scan
+// waits for (kinetri-scan-probe, docs/BENCHMARKS.md). twin is read only
+// for edges the floating-point filter cannot decide.
+void ScanTriangles(const MeshView& m, const Vec2* pos, const uint32_t* across,
+                   uint32_t lo, uint32_t hi, std::vector<uint32_t>* invalid,
+                   std::vector<uint32_t>* illegal);
+
+// across[e] = m.Across(e) for the half-edges of triangle slots [lo, hi)
+// (kNoVertex for free slots).
+void FillAcross(const MeshView& m, uint32_t lo, uint32_t hi, uint32_t* across);
+
 }  // namespace kinetri::core
 
 #endif  // KINETRI_CORE_MESH_SCAN_H_

@@ -577,6 +577,30 @@ void ExpectScanMatchesRules(const Mesh& mesh, const std::vector<Vec2>& pos) {
     EXPECT_EQ(invalid, want_invalid) << "piece " << piece;
     EXPECT_EQ(illegal, want_illegal) << "piece " << piece;
   }
+  // The same scan with the apexes across read from a per-half-edge array.
+  std::vector<uint32_t> across(m.num_half_edges, 0);
+  FillAcross(m, 0, nt, across.data());
+  for (uint32_t e = 0; e < m.num_half_edges; ++e) {
+    if (!m.IsFree(e / 3)) {
+      ASSERT_EQ(across[e], m.Across(e)) << e;
+    }
+  }
+  for (uint32_t piece : {nt, 7u, 64u}) {
+    std::vector<uint32_t> invalid, illegal;
+    for (uint32_t lo = 0; lo < nt; lo += piece) {
+      ScanTriangles(m, pos.data(), across.data(), lo, std::min(nt, lo + piece),
+                    &invalid, &illegal);
+    }
+    EXPECT_EQ(invalid, want_invalid) << "across, piece " << piece;
+    EXPECT_EQ(illegal, want_illegal) << "across, piece " << piece;
+  }
+  // It is the array that is read: with every apex across unknown (as on
+  // the hull) no edge is illegal.
+  std::fill(across.begin(), across.end(), kInfiniteVertex);
+  std::vector<uint32_t> invalid, illegal;
+  ScanTriangles(m, pos.data(), across.data(), 0, nt, &invalid, &illegal);
+  EXPECT_EQ(invalid, want_invalid);
+  EXPECT_TRUE(illegal.empty());
 }
 
 // Step works on `to` in place (held vertices stand at their old positions
