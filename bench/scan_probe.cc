@@ -135,8 +135,9 @@ int main(int argc, char** argv) {
   kinetri::ParseProgramFlags(
       argc, argv,
       "Times the dense scan of a kinetic step (invalid triangles, illegal "
-      "edges) with the apexes across read from the mesh and from a "
-      "per-half-edge array, on the same moved points; checks both agree.");
+      "edges) with the apexes across read from the mesh, from a "
+      "per-half-edge array, and from an edge list tested once per edge, on "
+      "the same moved points; exits 1 unless all three agree.");
   const uint32_t n = absl::GetFlag(FLAGS_n);
   const int reps = std::max(1, absl::GetFlag(FLAGS_reps));
   const uint32_t rt = std::max(1u, absl::GetFlag(FLAGS_region_triangles));
