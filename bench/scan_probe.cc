@@ -55,17 +55,21 @@ struct Quad {
 };
 using Lanes = double __attribute__((vector_size(32)));
 
-__attribute__((target("avx2"), always_inline)) inline Lanes Magnitude(Lanes x) {
-  const Lanes zero = {0, 0, 0, 0};
-  return x < zero ? -x : x;
-}
+// Compiled as core/mesh_scan.cc compiles the scan: an AVX2 clone picked at
+// load time where the compiler and target allow it, so that the three
+// scans are compared on the same vector units.
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && \
+    !defined(__SANITIZE_ADDRESS__) && !defined(__SANITIZE_THREAD__)
+#define KINETRI_PROBE_CLONES __attribute__((target_clones("avx2", "default")))
+#else
+#define KINETRI_PROBE_CLONES
+#endif
 
 // Appends the edges of q[lo, hi) that rules::IsIllegal finds illegal:
 // Shewchuk's in-circle filter for four edges in the lanes of one vector,
 // the exact predicate where it cannot decide.
-__attribute__((target("avx2"))) void ScanQuads(const Quad* q, size_t lo,
-                                               size_t hi, const Vec2* p,
-                                               std::vector<uint32_t>* out) {
+KINETRI_PROBE_CLONES void ScanQuads(const Quad* q, size_t lo, size_t hi,
+                                    const Vec2* p, std::vector<uint32_t>* out) {
   auto exact = [&](const Quad& x) {
     if (kc::InCircleSoS(p[x.a], p[x.b], p[x.c], p[x.d]) > 0) {
       out->push_back(x.e);
@@ -90,9 +94,12 @@ __attribute__((target("avx2"))) void ScanQuads(const Quad* q, size_t lo,
     const Lanes blift = bdx * bdx + bdy * bdy;
     const Lanes clift = cdx * cdx + cdy * cdy;
     const Lanes det = alift * (bc - cb) + blift * (ca - ac) + clift * (ab - ba);
-    const Lanes permanent = (Magnitude(bc) + Magnitude(cb)) * alift +
-                            (Magnitude(ca) + Magnitude(ac)) * blift +
-                            (Magnitude(ab) + Magnitude(ba)) * clift;
+    const Lanes zero = {0, 0, 0, 0};
+    const Lanes abc = bc < zero ? -bc : bc, acb = cb < zero ? -cb : cb;
+    const Lanes aca = ca < zero ? -ca : ca, aac = ac < zero ? -ac : ac;
+    const Lanes aab = ab < zero ? -ab : ab, aba = ba < zero ? -ba : ba;
+    const Lanes permanent =
+        (abc + acb) * alift + (aca + aac) * blift + (aab + aba) * clift;
     const auto legal = -det > kc::internal::kIccErrBoundA * permanent;
     for (int k = 0; k < 4; ++k) {
       if (!legal[k]) exact(q[i + k]);
@@ -140,7 +147,8 @@ int main(int argc, char** argv) {
       "the same moved points; exits 1 unless all three agree.");
   const uint32_t n = absl::GetFlag(FLAGS_n);
   const int reps = std::max(1, absl::GetFlag(FLAGS_reps));
-  const uint32_t rt = std::max(1u, absl::GetFlag(FLAGS_region_triangles));
+  const uint32_t rt =
+      std::clamp(absl::GetFlag(FLAGS_region_triangles), 1u, 1u << 24);
   std::mt19937_64 rng(absl::GetFlag(FLAGS_seed));
   std::uniform_real_distribution<double> u(0, 1);
   std::vector<Vec2> start(n);

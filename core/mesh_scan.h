@@ -31,8 +31,9 @@ void ScanTriangles(const MeshView& m, const Vec2* pos, uint32_t lo, uint32_t hi,
 // across[e] (== m.Across(e), as FillAcross writes it) instead of from
 // origin[Prev(twin[e])]: the loads of a triangle's apexes then lie next to
 // its own vertices instead of in its neighbours' slots, which a dense scan
-// waits for (kinetri-scan-probe, docs/BENCHMARKS.md). twin is read only
-// for edges the floating-point filter cannot decide.
+// waits for (kinetri-scan-probe, docs/BENCHMARKS.md). For finite
+// triangles, twin is read only for edges the floating-point filter cannot
+// decide (ghosts are decided by rules::TriangleOk on the mesh, as before).
 void ScanTriangles(const MeshView& m, const Vec2* pos, const uint32_t* across,
                    uint32_t lo, uint32_t hi, std::vector<uint32_t>* invalid,
                    std::vector<uint32_t>* illegal);
