@@ -9,6 +9,8 @@
 // edge's four vertices, in slot order, and tests each edge once (the
 // triangle scans test each from both sides): what a scan costs when
 // neither the topology's loads nor a second evaluation of an edge remain.
+// A fourth tests each edge once from the array: from the half-edge whose
+// origin is the smaller vertex id, its quads batched four to a vector.
 //
 // Usage: kinetri-scan-probe --n=1000000 --sigma=0.01 --reps=15
 #include <tbb/task_arena.h>
@@ -48,8 +50,8 @@ double Ms(std::chrono::steady_clock::time_point t0) {
       .count();
 }
 
-// An edge e (e < twin(e)) and its quad: origin a, destination b, apex c of
-// its own triangle, apex d across.
+// An edge e (e < twin(e) in the edge list) and its quad: origin a, destination
+// b, apex c of its own triangle, apex d across.
 struct Quad {
   uint32_t a, b, c, d, e;
 };
@@ -110,6 +112,7 @@ KINETRI_PROBE_CLONES void ScanQuads(const Quad* q, size_t lo, size_t hi,
 
 struct Found {
   std::vector<uint32_t> invalid, illegal;
+  std::vector<Quad> batch;  // the edge-once array scan's quads to test
 };
 
 // Calls scan(region, lo, hi, &found[region]) for every region, in parallel.
@@ -143,8 +146,9 @@ int main(int argc, char** argv) {
       argc, argv,
       "Times the dense scan of a kinetic step (invalid triangles, illegal "
       "edges) with the apexes across read from the mesh, from a "
-      "per-half-edge array, and from an edge list tested once per edge, on "
-      "the same moved points; exits 1 unless all three agree.");
+      "per-half-edge array, from an edge list tested once per edge, and "
+      "from the array tested once per edge, on the same moved points; "
+      "exits 1 unless all four agree.");
   const uint32_t n = absl::GetFlag(FLAGS_n);
   const int reps = std::max(1, absl::GetFlag(FLAGS_reps));
   const uint32_t rt =
@@ -187,8 +191,8 @@ int main(int argc, char** argv) {
   }
   quads_at[regions] = quads.size();
   std::vector<Found> by_mesh(regions), by_array(regions), filled(regions),
-      by_quads(regions);
-  std::vector<double> t_mesh, t_array, t_fill, t_quads;
+      by_quads(regions), by_once(regions);
+  std::vector<double> t_mesh, t_array, t_fill, t_quads, t_once;
   for (int i = 0; i < reps; ++i) {
     t_mesh.push_back(
         TimeScan(nt, rt, by_mesh, [&](uint32_t lo, uint32_t hi, Found* f) {
@@ -203,41 +207,84 @@ int main(int argc, char** argv) {
           kc::ScanTriangles(m, pos, across.data(), lo, hi, &f->invalid,
                             &f->illegal);
         }));
+    // Whether slot t holds a finite triangle; an invalid one is appended
+    // to f->invalid (ghosts are decided and skipped here).
+    auto finite_triangle = [&](uint32_t t, Found* f) {
+      if (m.IsFree(t)) return false;
+      const bool ghost = m.IsGhost(t);
+      const uint32_t* o = m.origin + 3 * t;
+      if (ghost ? !kc::rules::TriangleOk(m, pos, t)
+                : kc::Orient2d(pos[o[1]], pos[o[2]], pos[o[0]]) <= 0) {
+        f->invalid.push_back(t);
+      }
+      return !ghost;
+    };
     // Orientation of each finite triangle, then each edge once.
     t_quads.push_back(
         TimeScan(nt, rt, by_quads, [&](uint32_t lo, uint32_t hi, Found* f) {
           for (uint32_t t = lo; t < hi; ++t) {
-            if (m.IsFree(t)) continue;
-            if (m.IsGhost(t)) {
-              if (!kc::rules::TriangleOk(m, pos, t)) f->invalid.push_back(t);
-              continue;
-            }
-            const uint32_t* o = m.origin + 3 * t;
-            if (kc::Orient2d(pos[o[1]], pos[o[2]], pos[o[0]]) <= 0) {
-              f->invalid.push_back(t);
-            }
+            finite_triangle(t, f);
           }
           ScanQuads(quads.data(), quads_at[lo / rt], quads_at[lo / rt + 1], pos,
                     &f->illegal);
         }));
+    // The design the edge list bounds: origin and across in slot order,
+    // each edge tested once from the half-edge whose origin is the smaller
+    // vertex id (no twin needed), its quads batched four to a vector.
+    t_once.push_back(
+        TimeScan(nt, rt, by_once, [&](uint32_t lo, uint32_t hi, Found* f) {
+          constexpr size_t kBatch = 256;
+          f->batch.clear();
+          for (uint32_t t = lo; t < hi; ++t) {
+            if (!finite_triangle(t, f)) continue;
+            const uint32_t* o = m.origin + 3 * t;
+            const uint32_t* x = across.data() + 3 * t;
+            for (uint32_t k = 0; k < 3; ++k) {
+              const uint32_t a = o[k], b = o[(k + 1) % 3];
+              if (a < b && x[k] < kc::kInfiniteVertex) {
+                f->batch.push_back({a, b, o[(k + 2) % 3], x[k], 3 * t + k});
+              }
+            }
+            if (f->batch.size() >= kBatch) {
+              ScanQuads(f->batch.data(), 0, f->batch.size(), pos, &f->illegal);
+              f->batch.clear();
+            }
+          }
+          ScanQuads(f->batch.data(), 0, f->batch.size(), pos, &f->illegal);
+        }));
   }
-  size_t invalid = 0, illegal = 0, differ = 0;
+  // Its edges named as the other scans name them (e < twin(e)), in order;
+  // an edge may be found from the triangle in the next region, so the
+  // whole list is compared.
+  std::vector<uint32_t> once_illegal, mesh_illegal;
+  for (size_t r = 0; r < regions; ++r) {
+    for (uint32_t e : by_once[r].illegal) {
+      once_illegal.push_back(std::min(e, m.twin[e]));
+    }
+    mesh_illegal.insert(mesh_illegal.end(), by_mesh[r].illegal.begin(),
+                        by_mesh[r].illegal.end());
+  }
+  std::sort(once_illegal.begin(), once_illegal.end());
+  size_t differ = once_illegal != mesh_illegal;
+  size_t invalid = 0, illegal = 0;
   for (size_t r = 0; r < regions; ++r) {
     invalid += by_mesh[r].invalid.size();
     illegal += by_mesh[r].illegal.size();
     differ += by_mesh[r].invalid != by_array[r].invalid ||
               by_mesh[r].illegal != by_array[r].illegal ||
               by_mesh[r].invalid != by_quads[r].invalid ||
-              by_mesh[r].illegal != by_quads[r].illegal;
+              by_mesh[r].illegal != by_quads[r].illegal ||
+              by_mesh[r].invalid != by_once[r].invalid;
   }
   std::printf(
       "n=%u sigma=%g triangles=%u regions=%zu threads=%d: %zu invalid "
-      "triangles, %zu illegal edges, %zu regions differ\n",
+      "triangles, %zu illegal edges, %zu disagreements\n",
       n, absl::GetFlag(FLAGS_sigma), nt, regions,
       tbb::this_task_arena::max_concurrency(), invalid, illegal, differ);
   Print("scan, apexes from the mesh", t_mesh);
   Print("scan, apexes from the array", t_array);
   Print("FillAcross (whole mesh)", t_fill);
   Print("edge list, each edge once", t_quads);
+  Print("array, each edge once", t_once);
   return differ == 0 ? 0 : 1;
 }
