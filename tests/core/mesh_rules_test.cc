@@ -567,30 +567,31 @@ void ExpectScanMatchesRules(const Mesh& mesh, const std::vector<Vec2>& pos) {
       }
     }
   }
-  // Whole range, and cut into pieces (as regions cut it).
-  for (uint32_t piece : {nt, 7u, 64u}) {
-    std::vector<uint32_t> invalid, illegal;
-    for (uint32_t lo = 0; lo < nt; lo += piece) {
-      ScanTriangles(m, pos.data(), lo, std::min(nt, lo + piece), &invalid,
-                    &illegal);
-    }
-    EXPECT_EQ(invalid, want_invalid) << "piece " << piece;
-    EXPECT_EQ(illegal, want_illegal) << "piece " << piece;
-  }
-  // The same scan with the apexes across read from a per-half-edge array.
+  // The apexes across read from a per-half-edge array, as FillAcross
+  // writes it (kNoVertex in free slots).
   std::vector<uint32_t> across(m.num_half_edges, 0);
   FillAcross(m, 0, nt, across.data());
   for (uint32_t e = 0; e < m.num_half_edges; ++e) {
     ASSERT_EQ(across[e], m.IsFree(e / 3) ? kNoVertex : m.Across(e)) << e;
   }
-  for (uint32_t piece : {nt, 7u, 64u}) {
-    std::vector<uint32_t> invalid, illegal;
-    for (uint32_t lo = 0; lo < nt; lo += piece) {
-      ScanTriangles(m, pos.data(), across.data(), lo, std::min(nt, lo + piece),
-                    &invalid, &illegal);
+  // Both forms of the scan, over the whole range and cut into pieces (as
+  // regions cut it).
+  for (const uint32_t* apexes : {static_cast<const uint32_t*>(nullptr),
+                                 static_cast<const uint32_t*>(across.data())}) {
+    for (uint32_t piece : {nt, 7u, 64u}) {
+      std::vector<uint32_t> invalid, illegal;
+      for (uint32_t lo = 0; lo < nt; lo += piece) {
+        const uint32_t hi = std::min(nt, lo + piece);
+        if (apexes == nullptr) {
+          ScanTriangles(m, pos.data(), lo, hi, &invalid, &illegal);
+        } else {
+          ScanTriangles(m, pos.data(), apexes, lo, hi, &invalid, &illegal);
+        }
+      }
+      const char* form = apexes == nullptr ? "mesh" : "array";
+      EXPECT_EQ(invalid, want_invalid) << form << ", piece " << piece;
+      EXPECT_EQ(illegal, want_illegal) << form << ", piece " << piece;
     }
-    EXPECT_EQ(invalid, want_invalid) << "across, piece " << piece;
-    EXPECT_EQ(illegal, want_illegal) << "across, piece " << piece;
   }
   // It is the array that is read: with every apex across unknown (as on
   // the hull) no edge is illegal.
