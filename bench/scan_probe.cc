@@ -193,6 +193,18 @@ int main(int argc, char** argv) {
   std::vector<Found> by_mesh(regions), by_array(regions), filled(regions),
       by_quads(regions), by_once(regions);
   std::vector<double> t_mesh, t_array, t_fill, t_quads, t_once;
+  // Whether slot t holds a finite triangle; an invalid one is appended
+  // to f->invalid (ghosts are decided and skipped here).
+  auto finite_triangle = [&](uint32_t t, Found* f) {
+    if (m.IsFree(t)) return false;
+    const bool ghost = m.IsGhost(t);
+    const uint32_t* o = m.origin + 3 * t;
+    if (ghost ? !kc::rules::TriangleOk(m, pos, t)
+              : kc::Orient2d(pos[o[1]], pos[o[2]], pos[o[0]]) <= 0) {
+      f->invalid.push_back(t);
+    }
+    return !ghost;
+  };
   for (int i = 0; i < reps; ++i) {
     t_mesh.push_back(
         TimeScan(nt, rt, by_mesh, [&](uint32_t lo, uint32_t hi, Found* f) {
@@ -207,18 +219,6 @@ int main(int argc, char** argv) {
           kc::ScanTriangles(m, pos, across.data(), lo, hi, &f->invalid,
                             &f->illegal);
         }));
-    // Whether slot t holds a finite triangle; an invalid one is appended
-    // to f->invalid (ghosts are decided and skipped here).
-    auto finite_triangle = [&](uint32_t t, Found* f) {
-      if (m.IsFree(t)) return false;
-      const bool ghost = m.IsGhost(t);
-      const uint32_t* o = m.origin + 3 * t;
-      if (ghost ? !kc::rules::TriangleOk(m, pos, t)
-                : kc::Orient2d(pos[o[1]], pos[o[2]], pos[o[0]]) <= 0) {
-        f->invalid.push_back(t);
-      }
-      return !ghost;
-    };
     // Orientation of each finite triangle, then each edge once.
     t_quads.push_back(
         TimeScan(nt, rt, by_quads, [&](uint32_t lo, uint32_t hi, Found* f) {
