@@ -50,6 +50,11 @@ ABSL_FLAG(double, filter_estimate, -1,
 ABSL_FLAG(double, filter_fraction, -1,
           "region executor: keep the tolerances while at most this fraction "
           "of the vertices is loud (-1: the default)");
+ABSL_FLAG(double, keep_across_flips, -1,
+          "region executor: keep the apex across each edge for the next "
+          "dense scan after a step that flipped at most this fraction of the "
+          "triangles (0: never, every scan reads the mesh; -1: the default, "
+          "RegionStepPolicy::keep_across_flips)");
 ABSL_FLAG(int, max_subdivision_depth, -1,
           "round executor: override RoundStepPolicy::max_subdivision_depth "
           "(-1: default)");
@@ -150,6 +155,9 @@ int main(int argc, char** argv) {
                  executor.c_str());
     return 2;
   }
+  if (absl::GetFlag(FLAGS_keep_across_flips) >= 0) {
+    opt.region.keep_across_flips = absl::GetFlag(FLAGS_keep_across_flips);
+  }
   if (absl::GetFlag(FLAGS_region_triangles) > 0) {
     opt.region.region_triangles = absl::GetFlag(FLAGS_region_triangles);
   }
@@ -192,7 +200,7 @@ int main(int argc, char** argv) {
     std::printf(
         "step %d: update %.4f s (%s, substeps %u, held %u, halvings %u, "
         "re-inserted %u, deferred %u, fix flips %llu, hull %llu/%llu, "
-        "Delaunay flips %llu in %u rounds; scan %.3f s, fix %.3f s, "
+        "Delaunay flips %llu in %u rounds; scan %.3f s%s, fix %.3f s, "
         "legalize %.3f s, held %.3f s, re-insert %.3f s, tolerances %.3f s "
         "(%u moved points quiet)%s%s) | CGAL rebuild "
         "%.4f s | ratio %.3f\n",
@@ -202,9 +210,9 @@ int main(int argc, char** argv) {
         (unsigned long long)rep->flips.hull_absorb,
         (unsigned long long)rep->flips.hull_release,
         (unsigned long long)rep->flips.delaunay, rep->flips.legalize_rounds,
-        rep->scan_seconds, rep->fix_seconds, rep->legalize_seconds,
-        rep->held_seconds, rep->reinsert_seconds, rep->filter_seconds,
-        rep->quiet_points,
+        rep->scan_seconds, rep->across_kept ? " (apexes kept)" : "",
+        rep->fix_seconds, rep->legalize_seconds, rep->held_seconds,
+        rep->reinsert_seconds, rep->filter_seconds, rep->quiet_points,
         rep->fallback_reason.empty() ? "" : "; rebuilt because: ",
         rep->fallback_reason.c_str(), cg, up / cg);
     if (opt.executor == kinetri::core::Executor::kDevice) {

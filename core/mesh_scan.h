@@ -42,6 +42,22 @@ void ScanTriangles(const MeshView& m, const Vec2* pos, const uint32_t* across,
 // (kNoVertex for free slots).
 void FillAcross(const MeshView& m, uint32_t lo, uint32_t hi, uint32_t* across);
 
+// Keeps such an array valid where triangle t changed (a flip or unflip of
+// one of its edges, a split, a removal that rewrote or freed it): t's
+// entries, and those of the half-edges on the other side of its edges
+// (they read t's apexes). Writes only entries of t and of its neighbours.
+inline void RefreshAcross(const MeshView& m, uint32_t t, uint32_t* across) {
+  if (m.IsFree(t)) {
+    for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) across[e] = kNoVertex;
+    return;
+  }
+  for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
+    const uint32_t f = m.twin[e];
+    across[e] = m.origin[Prev(f)];
+    across[f] = m.origin[Prev(e)];
+  }
+}
+
 }  // namespace kinetri::core
 
 #endif  // KINETRI_CORE_MESH_SCAN_H_

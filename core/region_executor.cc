@@ -120,7 +120,8 @@ template <bool kBounded>
 void FixLoop(const MeshView& m, const Vec2* p, Bounds b,
              std::vector<uint32_t>& stack, std::vector<uint32_t>& waiting,
              std::vector<uint32_t>& deferred, std::vector<uint32_t>* log,
-             FlipCounts* counts, uint8_t* mark, uint32_t* ve) {
+             FlipCounts* counts, uint8_t* mark, uint32_t* ve,
+             uint32_t* across) {
   while (true) {
     bool progress = false;
     while (!stack.empty()) {
@@ -159,6 +160,10 @@ void FixLoop(const MeshView& m, const Vec2* p, Bounds b,
       if (log) log->push_back(prop.edge);
       CountFix(prop.kind, counts);
       if (mark) mark[fp[0]] = mark[fp[1]] = 1;
+      if (across) {
+        RefreshAcross(m, fp[0], across);
+        RefreshAcross(m, fp[1], across);
+      }
       progress = true;
       for (int k = 5; k >= 0; --k) stack.push_back(fp[k]);
     }
@@ -178,7 +183,7 @@ template <bool kBounded>
 void LegalizeLoop(const MeshView& m, const Vec2* p, Bounds b,
                   std::vector<uint32_t>& stack, std::vector<uint32_t>& deferred,
                   FlipCounts* counts, uint8_t* mark, uint32_t* ve,
-                  std::vector<uint32_t>* log = nullptr,
+                  uint32_t* across, std::vector<uint32_t>* log = nullptr,
                   size_t known_illegal = 0) {
   // The scan's illegal edges lie scattered over the region's slots, out of
   // cache by now (every region has been scanned since): their triangles
@@ -231,6 +236,10 @@ void LegalizeLoop(const MeshView& m, const Vec2* p, Bounds b,
     if (log) log->push_back(e);
     ++counts->delaunay;
     if (mark) mark[TriangleOf(e)] = mark[TriangleOf(f)] = 1;
+    if (across) {
+      RefreshAcross(m, TriangleOf(e), across);
+      RefreshAcross(m, TriangleOf(f), across);
+    }
     stack.push_back(Next(e));
     stack.push_back(Prev(e));
     stack.push_back(Next(f));
@@ -285,11 +294,17 @@ void AppendStarAndHullRing(const Mesh& mesh, uint32_t v,
   AppendStarAndHullRingFrom(mesh.view(), mesh.vertex_edge()[v], out);
 }
 
-// Unflips the logged flips, newest first, keeping vertex_edge (ve) valid.
-void Undo(const MeshView& m, const std::vector<uint32_t>& log, uint32_t* ve) {
+// Unflips the logged flips, newest first, keeping vertex_edge (ve) and
+// the across entries (when not null) valid.
+void Undo(const MeshView& m, const std::vector<uint32_t>& log, uint32_t* ve,
+          uint32_t* across) {
   for (auto it = log.rbegin(); it != log.rend(); ++it) {
     m.Unflip(*it);
     RepairVertexEdges(m, ve, *it);
+    if (across) {
+      RefreshAcross(m, TriangleOf(*it), across);
+      RefreshAcross(m, TriangleOf(m.twin[*it]), across);
+    }
   }
 }
 
@@ -437,6 +452,7 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
   (void)moved;
   const MeshView m = mesh.view();
   uint32_t* ve = mesh.mutable_vertex_edge().data();
+  uint32_t* const across = LiveAcross();
   const uint32_t rt = policy.region_triangles;
   const uint32_t nt = mesh.num_triangles();
   Region serial;
@@ -456,14 +472,14 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
                                          static_cast<uint32_t>(std::min<size_t>(
                                              nt, (r + 1) * size_t{rt}))};
                           FixLoop<true>(m, p, b, g.stack, g.waiting, g.deferred,
-                                        &g.log, &g.counts, tri_mark_.data(),
-                                        ve);
+                                        &g.log, &g.counts, tri_mark_.data(), ve,
+                                        across);
                         }
                       });
     if (Cancelled()) {
       // Back to the mesh of `from` (regions are independent: any order).
       for (auto it = regions_.rbegin(); it != regions_.rend(); ++it) {
-        Undo(m, it->log, ve);
+        Undo(m, it->log, ve, across);
       }
       *reason = "cancelled";
       return false;
@@ -479,7 +495,7 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
     }
     FixLoop<false>(m, p, Bounds{}, serial.stack, serial.waiting,
                    serial.deferred, &serial.log, &serial.counts,
-                   tri_mark_.data(), ve);
+                   tri_mark_.data(), ve, across);
     // Stuck triangles, or a hull that winds twice: hold their culprits
     // (the moving hull vertices) where the mesh is now and go on fixing
     // around them (serially; they are few), instead of undoing the pass.
@@ -515,7 +531,7 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
       }
       FixLoop<false>(m, p, Bounds{}, serial.stack, serial.waiting,
                      serial.deferred, &serial.log, &serial.counts,
-                     tri_mark_.data(), ve);
+                     tri_mark_.data(), ve, across);
     }
     const bool stuck = !serial.waiting.empty();
     if (!stuck && HullWindsOnceFrom(mesh, *cur_, &hull_hint_)) {
@@ -545,9 +561,9 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
         }
       }
     }
-    Undo(m, serial.log, ve);
+    Undo(m, serial.log, ve, across);
     for (auto it = regions_.rbegin(); it != regions_.rend(); ++it) {
-      Undo(m, it->log, ve);
+      Undo(m, it->log, ve, across);
     }
     // Hold the culprits; if they are all held already, their moving
     // neighbours too (in the restored mesh).
@@ -600,6 +616,7 @@ bool RegionExecutor::MoveHeldInRegion(
     std::vector<uint32_t>* late_edges, std::vector<uint32_t>* kept) {
   const MeshView m = mesh.view();
   uint32_t* ve = mesh.mutable_vertex_edge().data();
+  uint32_t* const across = LiveAcross();
   const Bounds b{lo, hi};
   thread_local std::vector<uint32_t> around, stack, waiting, deferred, log;
   // Only this region writes v's vertex_edge while v's star lies in it.
@@ -631,10 +648,10 @@ bool RegionExecutor::MoveHeldInRegion(
     log.clear();
     FlipCounts c;
     FixLoop<true>(m, p, b, stack, waiting, deferred, &log, &c, tri_mark_.data(),
-                  ve);
+                  ve, across);
     if (!deferred.empty() || c.hull_absorb + c.hull_release > 0) {
       // Reaches out of the region or changes the hull: the serial pass.
-      Undo(m, log, ve);
+      Undo(m, log, ve, across);
       (*cur_)[v] = old;
       stats->flips += counts;
       return false;
@@ -645,7 +662,7 @@ bool RegionExecutor::MoveHeldInRegion(
       SeedLegalizeAfterMove(m, mesh.vertex_edge()[v], log, &around, &stack);
       // Edges that cross the region are legalized in the serial pass.
       LegalizeLoop<true>(m, p, b, stack, *late_edges, &counts, tri_mark_.data(),
-                         ve, kept);
+                         ve, across, kept);
       if (goal == target) {
         stats->flips += counts;
         return true;
@@ -653,7 +670,7 @@ bool RegionExecutor::MoveHeldInRegion(
       goal = target;
       continue;
     }
-    Undo(m, log, ve);
+    Undo(m, log, ve, across);
     (*cur_)[v] = old;
     if (!Bisect(old, policy, &goal, &halvings, stats)) {
       stats->flips += counts;
@@ -668,6 +685,7 @@ bool RegionExecutor::MoveHeld(Mesh& mesh, uint32_t v, const Vec2& target,
                               std::vector<uint32_t>* kept) {
   const MeshView m = mesh.view();
   uint32_t* ve = mesh.mutable_vertex_edge().data();
+  uint32_t* const across = LiveAcross();
   std::vector<uint32_t> around, stack, waiting, deferred, log;
   FlipCounts counts;
   Vec2 goal = target;
@@ -688,7 +706,7 @@ bool RegionExecutor::MoveHeld(Mesh& mesh, uint32_t v, const Vec2& target,
     log.clear();
     FlipCounts c;
     FixLoop<false>(m, p, Bounds{}, stack, waiting, deferred, &log, &c,
-                   tri_mark_.data(), ve);
+                   tri_mark_.data(), ve, across);
     const bool hull_changed = c.hull_absorb + c.hull_release > 0;
     const bool ok =
         waiting.empty() && (!(hull_near || hull_changed) ||
@@ -699,7 +717,7 @@ bool RegionExecutor::MoveHeld(Mesh& mesh, uint32_t v, const Vec2& target,
       // Legalize around v and wherever fixing flipped.
       SeedLegalizeAfterMove(m, mesh.vertex_edge()[v], log, &around, &stack);
       LegalizeLoop<false>(m, p, Bounds{}, stack, deferred, &counts,
-                          tri_mark_.data(), ve, kept);
+                          tri_mark_.data(), ve, across, kept);
       if (goal == target) {
         stats->flips += counts;
         return true;
@@ -707,7 +725,7 @@ bool RegionExecutor::MoveHeld(Mesh& mesh, uint32_t v, const Vec2& target,
       goal = target;
       continue;
     }
-    Undo(m, log, ve);
+    Undo(m, log, ve, across);
     (*cur_)[v] = old;
     if (!Bisect(old, policy, &goal, &halvings, stats)) {
       stats->flips += counts;
@@ -749,7 +767,22 @@ bool RegionExecutor::Step(Mesh& mesh, const std::vector<Vec2>& from,
       x->cancel_ = nullptr;
     }
   } put_back{this, to};
-  return StepInPlace(mesh, moved, policy, stats, removed, hints, reason);
+  const bool ok =
+      StepInPlace(mesh, moved, policy, stats, removed, hints, reason);
+  if (ok) {
+    // Keep the across entries when this step flipped little (the next is
+    // likely to as well); those kept through the step name this mesh now
+    // (until anything else touches it).
+    const FlipCounts& f = stats->flips;
+    const uint64_t flips =
+        f.interior_fix + f.hull_absorb + f.hull_release + f.delaunay;
+    across_wanted_ = double(flips) <=
+                     policy.keep_across_flips * double(mesh.num_triangles());
+    if (across_live_ && across_wanted_) {
+      across_version_ = mesh.content_version();
+    }
+  }
+  return ok;
 }
 
 bool RegionExecutor::StepInPlace(Mesh& mesh, const std::vector<uint32_t>& moved,
@@ -769,6 +802,21 @@ bool RegionExecutor::StepInPlace(Mesh& mesh, const std::vector<uint32_t>& moved,
   };
   const uint32_t n = static_cast<uint32_t>(cur_->size());
   const uint32_t nt = mesh.num_triangles();
+  const bool dense = moved.size() > policy.sparse_fraction * n;
+  // The across entries: still those of this mesh when nothing touched it
+  // since the last step that kept them (read before view() below renews
+  // the number); a dense scan fills them when not, region by region; a
+  // sparse step keeps them only when they are current (a fill would cost
+  // what the step does).
+  const bool keep = policy.keep_across_flips > 0;
+  const bool across_current = keep && KeepsAcross(mesh);
+  across_version_ = 0;
+  host_change_ = false;
+  across_live_ = keep && (across_current || (dense && across_wanted_));
+  stats->across_kept = dense && across_current;
+  if (across_live_ && !across_current) {
+    across_.resize(mesh.num_half_edges());
+  }
   const uint32_t rt = std::max<uint32_t>(policy.region_triangles, 1);
   const size_t num_regions = (size_t{nt} + rt - 1) / rt;
   regions_.resize(num_regions);
@@ -803,7 +851,6 @@ bool RegionExecutor::StepInPlace(Mesh& mesh, const std::vector<uint32_t>& moved,
   };
 
   // 1. Scan: invalid triangles and illegal edges for `to`.
-  const bool dense = moved.size() > policy.sparse_fraction * n;
   const double rebuild_cost =
       policy.rebuild_fixed_cost + policy.rebuild_point_cost * double(n);
   if (dense && policy.held_vertex_cost > 0 && nt >= 4 * kRebuildSamples) {
@@ -882,7 +929,12 @@ bool RegionExecutor::StepInPlace(Mesh& mesh, const std::vector<uint32_t>& moved,
     for_each_region([&](size_t r, uint32_t lo, uint32_t hi) {
       if (Cancelled()) return;
       Region& g = regions_[r];
-      ScanTriangles(m, p, lo, hi, &g.invalid, &g.illegal);
+      if (!across_live_) {
+        ScanTriangles(m, p, lo, hi, &g.invalid, &g.illegal);
+      } else {
+        if (!across_current) FillAcross(m, lo, hi, across_.data());
+        ScanTriangles(m, p, across_.data(), lo, hi, &g.invalid, &g.illegal);
+      }
       classify(g, Bounds{lo, hi});
     });
   } else {
@@ -991,6 +1043,7 @@ bool RegionExecutor::StepInPlace(Mesh& mesh, const std::vector<uint32_t>& moved,
   {
     const Vec2* p = cur_->data();
     uint32_t* ve = mesh.mutable_vertex_edge().data();
+    uint32_t* const across = LiveAcross();
     for (Region& g : regions_) g.held.clear();
     for (uint32_t i = 0; i < held_list_.size(); ++i) {
       const uint32_t e = ve[held_list_[i]];
@@ -1022,7 +1075,8 @@ bool RegionExecutor::StepInPlace(Mesh& mesh, const std::vector<uint32_t>& moved,
         for (uint32_t e = 3 * t + 3; e-- > 3 * t;) g.stack.push_back(e);
       }
       LegalizeLoop<true>(m, p, Bounds{lo, hi}, g.stack, g.deferred, &g.counts,
-                         tri_mark_.data(), ve, &g.log, g.illegal.size());
+                         tri_mark_.data(), ve, across, &g.log,
+                         g.illegal.size());
       for (uint32_t i : g.held) {
         if (Cancelled() ||
             !MoveHeldInRegion(mesh, held_list_[i], held_target_[i], pol, lo, hi,
@@ -1060,7 +1114,7 @@ bool RegionExecutor::StepInPlace(Mesh& mesh, const std::vector<uint32_t>& moved,
                            static_cast<uint32_t>(
                                std::min<size_t>(nt, (c + 1) * size_t{crt}))};
             LegalizeLoop<true>(m, p, b, cg.stack, cg.deferred, &cg.counts,
-                               tri_mark_.data(), ve, &cg.log);
+                               tri_mark_.data(), ve, across, &cg.log);
             // The held vertices its regions could not move.
             for (size_t r = c * kCoarse; r < last; ++r) {
               for (uint32_t i : regions_[r].waiting) {
@@ -1091,7 +1145,8 @@ bool RegionExecutor::StepInPlace(Mesh& mesh, const std::vector<uint32_t>& moved,
       stats->halvings += rstats[r].halvings;
     }
     LegalizeLoop<false>(m, p, Bounds{}, serial.stack, serial.deferred,
-                        &serial.counts, tri_mark_.data(), ve, &serial.log);
+                        &serial.counts, tri_mark_.data(), ve, across,
+                        &serial.log);
     stats->flips += serial.counts;
     ++stats->flips.legalize_rounds;
     stats->held_serial = static_cast<uint32_t>(left.size());
@@ -1151,11 +1206,22 @@ bool RegionExecutor::RemoveHeld(Mesh& mesh, uint32_t v,
   } while (e != e0);
   std::vector<uint32_t> touched;
   if (!VertexOps::Remove(mesh, *cur_, v, &touched, nullptr)) return false;
-  LegalizeSerial(mesh, *cur_, touched, &stats->flips, &held_log_);
+  uint32_t* const across = LiveAcross();
+  if (across) {
+    // Every slot the removal rewrote or freed is a star slot; the star's
+    // neighbours' entries across it are refreshed with it.
+    for (size_t i = first; i < saved_.size(); ++i) {
+      RefreshAcross(m, saved_[i].slot, across);
+    }
+  }
+  LegalizeSerial(mesh, *cur_, touched, &stats->flips, &held_log_, across);
   return true;
 }
 
 void RegionExecutor::UndoStep(Mesh& mesh) {
+  // Restored removals rewrite slots wholesale: the next step fills the
+  // across entries afresh.
+  across_live_ = false;
   const MeshView m = mesh.view();
   uint32_t* ve = mesh.mutable_vertex_edge().data();
   // The serial held moves and removals, newest first.
@@ -1189,14 +1255,15 @@ void RegionExecutor::UndoStep(Mesh& mesh) {
                         }
                       });
   };
-  Undo(m, serial_.log, ve);
-  undo_each(coarse_, [&](const Region& g) { Undo(m, g.log, ve); });
+  Undo(m, serial_.log, ve, nullptr);
+  undo_each(coarse_, [&](const Region& g) { Undo(m, g.log, ve, nullptr); });
   undo_each(regions_, [&](const Region& g) {
-    Undo(m, g.held_log, ve);
-    Undo(m, g.log, ve);
+    Undo(m, g.held_log, ve, nullptr);
+    Undo(m, g.log, ve, nullptr);
   });
-  Undo(m, fix_serial_log_, ve);
-  undo_each(regions_, [&](const Region& g) { Undo(m, g.fix_log, ve); });
+  Undo(m, fix_serial_log_, ve, nullptr);
+  undo_each(regions_,
+            [&](const Region& g) { Undo(m, g.fix_log, ve, nullptr); });
   held_log_.clear();
   removals_.clear();
   saved_.clear();
@@ -1209,7 +1276,7 @@ bool RegionExecutor::FixSerial(Mesh& mesh, const std::vector<Vec2>& pos,
                                FlipCounts* counts,
                                std::vector<uint32_t>* touched,
                                std::vector<uint32_t>* log,
-                               std::vector<uint32_t>* stuck) {
+                               std::vector<uint32_t>* stuck, uint32_t* across) {
   const MeshView m = mesh.view();
   std::vector<uint32_t> stack(invalid.rbegin(), invalid.rend());
   std::vector<uint32_t> waiting, deferred, own_log;
@@ -1217,7 +1284,7 @@ bool RegionExecutor::FixSerial(Mesh& mesh, const std::vector<Vec2>& pos,
   std::vector<uint32_t>* lg = log ? log : &own_log;
   const size_t log_begin = lg->size();
   FixLoop<false>(m, pos.data(), Bounds{}, stack, waiting, deferred, lg, &c,
-                 nullptr, mesh.mutable_vertex_edge().data());
+                 nullptr, mesh.mutable_vertex_edge().data(), across);
   if (counts) *counts += c;
   if (touched) {
     for (size_t i = log_begin; i < lg->size(); ++i) {
@@ -1236,7 +1303,8 @@ bool RegionExecutor::FixSerial(Mesh& mesh, const std::vector<Vec2>& pos,
 void RegionExecutor::LegalizeSerial(Mesh& mesh, const std::vector<Vec2>& pos,
                                     const std::vector<uint32_t>& seeds,
                                     FlipCounts* counts,
-                                    std::vector<uint32_t>* log) {
+                                    std::vector<uint32_t>* log,
+                                    uint32_t* across) {
   const MeshView m = mesh.view();
   std::vector<uint32_t> stack, deferred;
   stack.reserve(3 * seeds.size());
@@ -1245,8 +1313,43 @@ void RegionExecutor::LegalizeSerial(Mesh& mesh, const std::vector<Vec2>& pos,
   }
   FlipCounts c;
   LegalizeLoop<false>(m, pos.data(), Bounds{}, stack, deferred, &c, nullptr,
-                      mesh.mutable_vertex_edge().data(), log);
+                      mesh.mutable_vertex_edge().data(), across, log);
   if (counts) *counts += c;
+}
+
+bool RegionExecutor::BeginHostChange(const Mesh& mesh) {
+  host_change_ = KeepsAcross(mesh);
+  across_version_ = 0;
+  return host_change_;
+}
+
+uint32_t* RegionExecutor::HostChangeAcross(const Mesh& mesh) {
+  if (!host_change_) return nullptr;
+  if (across_.size() < mesh.num_half_edges()) {
+    across_.resize(mesh.num_half_edges(), kNoVertex);
+  }
+  return across_.data();
+}
+
+void RegionExecutor::EndHostChange(const Mesh& mesh) {
+  if (host_change_ && across_.size() == mesh.num_half_edges()) {
+    across_version_ = mesh.content_version();
+  }
+  host_change_ = false;
+}
+
+absl::Status RegionExecutor::CheckAcross(const Mesh& mesh) const {
+  if (!KeepsAcross(mesh)) return absl::OkStatus();
+  const MeshView m = mesh.view();
+  for (uint32_t e = 0; e < m.num_half_edges; ++e) {
+    const uint32_t want = m.origin[e] == kNoVertex ? kNoVertex : m.Across(e);
+    if (across_[e] != want) {
+      return absl::InternalError(absl::StrCat("kept apex across half-edge ", e,
+                                              " is ", across_[e], ", not ",
+                                              want, " (region executor)"));
+    }
+  }
+  return absl::OkStatus();
 }
 
 }  // namespace kinetri::core

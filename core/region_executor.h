@@ -14,7 +14,9 @@
 //
 // A step (Step below), for a mesh that is Delaunay for `from`:
 //   1. one fused dense scan (or a scan around the moved vertices for sparse
-//      motion) finds the invalid triangles and the illegal edges for `to`;
+//      motion) finds the invalid triangles and the illegal edges for `to`,
+//      reading the apex across each edge from an array kept since the last
+//      step where that step flipped little (CheckAcross below);
 //   2. hold-back: an invalid triangle that no flip can repair right after
 //      the move has its culprit vertex (one whose old position makes the
 //      triangle valid again) held at its old position;
@@ -35,6 +37,7 @@
 #include <utility>
 #include <vector>
 
+#include "absl/status/status.h"
 #include "core/cancel.h"
 #include "core/hull.h"
 #include "core/kinetic.h"
@@ -76,6 +79,18 @@ struct RegionStepPolicy {
   double filter_fraction = 0.01;
   uint32_t filter_samples = 1024;
   int filter_backoff = 4;
+  // Keep the apex across each half-edge from one step to the next
+  // (RegionExecutor::CheckAcross): the dense scan then reads it beside each
+  // triangle instead of in the neighbours' slots, and every flip refreshes
+  // the entries it changes. That pays while steps flip little: the array is
+  // kept after a step that flipped at most this fraction of the triangle
+  // slots, and dropped after one that flipped more (about a fifth at
+  // Brownian 0.1, where the upkeep costs more than the scan saves; 2 % at
+  // 0.01, docs/BENCHMARKS.md); a dense step after a dropping one reads the
+  // mesh, one after a keeping one fills the array as it scans. 0: never
+  // kept (the same meshes; kinetri_quick_bench --keep_across_flips
+  // compares).
+  double keep_across_flips = 0.05;
 };
 
 // What a region step did (added to the caller's StepReport).
@@ -90,6 +105,9 @@ struct RegionStepStats {
   double fix_seconds = 0.0;
   double legalize_seconds = 0.0;  // with the held vertices regions move
   double held_seconds = 0.0;      // the held vertices of the serial pass
+  // The dense scan read the apexes across kept from the last step (false:
+  // it filled them, or read the mesh, or the step was sparse).
+  bool across_kept = false;
   // The step stopped because its cancellation token fired. A step that
   // stops or fails leaves the mesh exactly as it was, whatever phase it is
   // in: every flip and vertex removal it made is logged and undone.
@@ -137,21 +155,52 @@ class RegionExecutor {
 
   // Serial stack versions of the fixing and legalizing loops (same contract
   // as KineticExecutor::Fix / Legalize, hull check included), for small
-  // local changes such as vertex insertion.
+  // local changes such as vertex insertion. `across` (optional): an array
+  // of the apexes across each half-edge (FillAcross) kept valid through
+  // every flip.
   static bool FixSerial(Mesh& mesh, const std::vector<Vec2>& pos,
                         const std::vector<uint32_t>& invalid,
                         FlipCounts* counts, std::vector<uint32_t>* touched,
                         std::vector<uint32_t>* log,
-                        std::vector<uint32_t>* stuck);
+                        std::vector<uint32_t>* stuck,
+                        uint32_t* across = nullptr);
   static void LegalizeSerial(Mesh& mesh, const std::vector<Vec2>& pos,
                              const std::vector<uint32_t>& seed_triangles,
                              FlipCounts* counts,
-                             std::vector<uint32_t>* log = nullptr);
+                             std::vector<uint32_t>* log = nullptr,
+                             uint32_t* across = nullptr);
 
   // Per triangle slot, after a successful Step: nonzero for every triangle
   // the step changed or looked at around a moved vertex (on the sparse
   // path: each moved vertex's star and the ghosts next to it).
   const std::vector<uint8_t>& changed_triangles() const { return tri_mark_; }
+
+  // The apex across every half-edge (core/mesh_scan.h's FillAcross), kept
+  // from one step to the next so that the dense scan reads it beside each
+  // triangle's own vertices instead of in its neighbours' slots: filled by
+  // a dense scan, refreshed by every flip, unflip and removal of the step,
+  // and trusted by the next step only while the mesh's content_version()
+  // is the one the last step ended with (anything else that touches the
+  // mesh makes the next dense scan fill it again). Ok when it is not kept
+  // for `mesh`; an error naming the first half-edge where a kept entry is
+  // not the mesh's (Triangulation::Validate checks this).
+  absl::Status CheckAcross(const Mesh& mesh) const;
+  // Whether the next step reads kept across entries for `mesh`.
+  bool KeepsAcross(const Mesh& mesh) const {
+    return across_version_ != 0 && across_.size() == mesh.num_half_edges() &&
+           across_version_ == mesh.content_version();
+  }
+  // The caller's own changes to the mesh between steps (re-insertion) keep
+  // the entries when it names every triangle it writes:
+  // BeginHostChange(mesh) before the first change (false: nothing is kept
+  // for this mesh, nothing to do); HostChangeAcross(mesh) for the entries,
+  // sized for the mesh as it is then (null when not kept), to refresh by
+  // RefreshAcross (core/mesh_scan.h) for every triangle a change writes
+  // and to hand to FixSerial / LegalizeSerial; EndHostChange(mesh) after
+  // the last change. A change that does not end keeps nothing.
+  bool BeginHostChange(const Mesh& mesh);
+  uint32_t* HostChangeAcross(const Mesh& mesh);
+  void EndHostChange(const Mesh& mesh);
 
  private:
   struct Region {
@@ -217,6 +266,9 @@ class RegionExecutor {
   // recomputed afterwards.
   void UndoStep(Mesh& mesh);
 
+  // The across entries the step keeps valid, or null when it does not.
+  uint32_t* LiveAcross() { return across_live_ ? across_.data() : nullptr; }
+
   // The token fired (polled at most once per region or held vertex).
   bool Cancelled() const { return cancel_ != nullptr && cancel_->Cancelled(); }
 
@@ -251,6 +303,16 @@ class RegionExecutor {
   std::vector<Removal> removals_;
   std::vector<SavedTriangle> saved_;
   uint32_t hull_hint_ = 0;  // a ghost triangle, remembered
+  // Per half-edge, the apex across it (CheckAcross above); the mesh's
+  // content_version() it was last right for (0: none); whether the step
+  // running keeps it valid.
+  std::vector<uint32_t> across_;
+  uint64_t across_version_ = 0;
+  bool across_live_ = false;
+  bool host_change_ = false;  // between BeginHostChange and EndHostChange
+  // The last step flipped few enough to keep the array
+  // (RegionStepPolicy::keep_across_flips).
+  bool across_wanted_ = true;
 };
 
 }  // namespace kinetri::core

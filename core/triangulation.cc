@@ -20,6 +20,7 @@
 #include "core/cell_index.h"
 #include "core/flip_rules.h"
 #include "core/hint_grid.h"
+#include "core/mesh_scan.h"
 #include "core/parallel.h"
 #include "core/predicates.h"
 #include "core/site_adjacency.h"
@@ -248,11 +249,12 @@ absl::StatusOr<Triangulation> Triangulation::Create(
       !(rp.sparse_fraction >= 0.0 && rp.sparse_fraction <= 1.0) ||
       !(rp.held_vertex_cost >= 0.0 && rp.held_vertex_cost < 1e9) ||
       !(rp.rebuild_point_cost >= 0.0 && rp.rebuild_point_cost < 1e9) ||
-      !(rp.rebuild_fixed_cost >= 0.0 && rp.rebuild_fixed_cost < 1e12)) {
+      !(rp.rebuild_fixed_cost >= 0.0 && rp.rebuild_fixed_cost < 1e12) ||
+      !(rp.keep_across_flips >= 0.0 && rp.keep_across_flips <= 1.0)) {
     return absl::InvalidArgumentError(
         "region policy: region_triangles must be >= 16, max_halvings in "
-        "[0, 60], max_passes in [1, 1024], sparse_fraction in [0, 1], "
-        "costs finite and >= 0");
+        "[0, 60], max_passes in [1, 1024], sparse_fraction and "
+        "keep_across_flips in [0, 1], costs finite and >= 0");
   }
   for (size_t i = 0; i < points.size(); ++i) {
     absl::Status s = CheckPosition(points[i], "points", i);
@@ -830,6 +832,12 @@ bool Triangulation::InsertBatch(std::vector<uint32_t> pending,
                                 StepReport* report) {
   std::sort(pending.begin(), pending.end());
   std::vector<uint32_t> owner;  // per triangle: inserting vertex this round
+  const bool regions = options_.executor == Executor::kRegions;
+  // The region executor's apexes across each edge stay kept through the
+  // insertions: every triangle they write is refreshed (the splits' here,
+  // the flips' in FixSerial and LegalizeSerial).
+  const bool keep_across =
+      regions && !pending.empty() && region_executor_.BeginHostChange(mesh_);
   while (!pending.empty()) {
     // Locate every pending point (read-only, parallel).
     uint32_t fallback = 0;
@@ -898,13 +906,18 @@ bool Triangulation::InsertBatch(std::vector<uint32_t> pending,
       inserted.push_back(pending[i]);
       touched.insert(touched.end(), tris.begin(), tris.end());
     }
+    uint32_t* across =
+        keep_across ? region_executor_.HostChangeAcross(mesh_) : nullptr;
+    if (across != nullptr) {
+      const MeshView mv = std::as_const(mesh_).view();
+      for (uint32_t t : touched) RefreshAcross(mv, t, across);
+    }
     std::vector<uint32_t> invalid =
         KineticExecutor::FindInvalidTriangles(mesh_, pos_, &inserted);
-    const bool regions = options_.executor == Executor::kRegions;
     const bool fixed =
         regions
             ? RegionExecutor::FixSerial(mesh_, pos_, invalid, &report->flips,
-                                        &touched, nullptr, nullptr)
+                                        &touched, nullptr, nullptr, across)
             : KineticExecutor::Fix(mesh_, pos_, std::move(invalid), scratch_,
                                    &report->flips, &touched, nullptr, nullptr);
     if (!fixed) {
@@ -917,7 +930,8 @@ bool Triangulation::InsertBatch(std::vector<uint32_t> pending,
     std::sort(seeds.begin(), seeds.end());
     seeds.erase(std::unique(seeds.begin(), seeds.end()), seeds.end());
     if (regions) {
-      RegionExecutor::LegalizeSerial(mesh_, pos_, seeds, &report->flips);
+      RegionExecutor::LegalizeSerial(mesh_, pos_, seeds, &report->flips,
+                                     nullptr, across);
     } else {
       // The splits, fixing's and legalizing's flips: what the round
       // changed (the device's copy takes only that).
@@ -927,6 +941,7 @@ bool Triangulation::InsertBatch(std::vector<uint32_t> pending,
     }
     pending = std::move(deferred);
   }
+  if (keep_across) region_executor_.EndHostChange(mesh_);
   return true;
 }
 
@@ -1406,6 +1421,7 @@ bool Triangulation::RegionUpdate(std::vector<Vec2>& next,
   report->deferred = stats.deferred;
   report->substeps = stats.held > 0 ? 2 : 1;
   report->scan_seconds += stats.scan_seconds;
+  report->across_kept = stats.across_kept;
   report->fix_seconds += stats.fix_seconds;
   report->legalize_seconds += stats.legalize_seconds;
   report->held_seconds += stats.held_seconds;

@@ -148,6 +148,9 @@ struct StepReport {
   double legalize_seconds = 0.0;
   double reinsert_seconds = 0.0;
   double scan_seconds = 0.0;  // region executor: scan and hold-back
+  // Region executor: the dense scan read the apexes across each edge kept
+  // from the last step (RegionStepPolicy::keep_across_flips).
+  bool across_kept = false;
   // Region executor: held vertices moved alone in the serial pass (those
   // moved by regions count in legalize_seconds).
   double held_seconds = 0.0;

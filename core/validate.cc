@@ -159,7 +159,9 @@ absl::Status Triangulation::Validate() const {
     return absl::InternalError(
         absl::StrCat("edge ", first_error.load(), " is not locally Delaunay"));
   }
-  return absl::OkStatus();
+  // What the next step trusts without looking: the region executor's kept
+  // apexes, where it keeps them for this mesh.
+  return region_executor_.CheckAcross(mesh_);
 }
 
 }  // namespace kinetri::core

@@ -681,6 +681,151 @@ TEST(RegionExecutor, StepGivesBackEveryTarget) {
   EXPECT_GE(stops, 3);
 }
 
+// The apexes across every half-edge that the region executor keeps from
+// one step to the next (filled by a dense scan, refreshed by every flip,
+// unflip and removal) are the mesh's after every step that keeps them, and
+// a step that reads them makes the same mesh as one that fills them
+// afresh: dense steps, small and large (held vertices), a sparse one, one
+// after the mesh was touched elsewhere, and one whose held vertices are
+// removed.
+TEST(RegionExecutor, KeepsTheApexesAcrossEachEdge) {
+  constexpr size_t kN = 3000;
+  const std::vector<Vec2> raw = testing::UniformPoints(kN, 12);
+  std::vector<Vec2> pos;
+  for (uint32_t i : HilbertOrder(raw)) pos.push_back(raw[i]);
+  Mesh kept = BuildDelaunayWithCgal(pos, AllSites(kN));
+  kept.SortTrianglesByVertex();
+  Mesh fresh = kept;
+  RegionExecutor keeper;
+  RegionStepPolicy policy;
+  policy.region_triangles = 256;
+  policy.keep_across_flips = 1;  // whatever the step flips
+  std::mt19937_64 rng(9);
+  const double spacing = 1.0 / std::sqrt(double(kN));
+  struct StepCase {
+    const char* name;
+    double sigma;     // in mean spacings
+    double fraction;  // of the vertices that move
+    int max_halvings;
+    bool touch_before;  // the mesh is written elsewhere first
+  };
+  const StepCase cases[] = {
+      {"small, fills", 0.05, 1.0, 8, false},
+      {"small, reads", 0.05, 1.0, 8, false},
+      {"sparse", 0.3, 0.02, 8, false},
+      {"after a touch", 0.05, 1.0, 8, true},
+      {"held vertices removed", 0.15, 1.0, 0, false},
+  };
+  uint32_t held = 0, removed_total = 0;
+  for (const StepCase& c : cases) {
+    SCOPED_TRACE(c.name);
+    if (c.touch_before) {
+      (void)kept.view();
+      EXPECT_FALSE(keeper.KeepsAcross(kept));
+    }
+    std::normal_distribution<double> g(0.0, c.sigma * spacing);
+    std::uniform_real_distribution<double> u(0.0, 1.0);
+    std::vector<Vec2> to = pos;
+    std::vector<uint32_t> moved;
+    for (uint32_t v = 0; v < kN; ++v) {
+      if (u(rng) >= c.fraction) continue;
+      to[v] = {to[v].x + g(rng), to[v].y + g(rng)};
+      moved.push_back(v);
+    }
+    RegionStepPolicy pol = policy;
+    pol.max_halvings = c.max_halvings;
+    auto step = [&](RegionExecutor& x, Mesh& mesh, RegionStepStats* stats,
+                    std::vector<uint32_t>* removed) {
+      std::vector<Vec2> work = to;
+      std::vector<uint32_t> hints(kN, kNoVertex);
+      std::string reason;
+      const bool ok =
+          x.Step(mesh, pos, work, moved, pol, stats, removed, &hints, &reason);
+      EXPECT_TRUE(ok) << reason;
+      return ok;
+    };
+    RegionStepStats stats, fresh_stats;
+    std::vector<uint32_t> removed, fresh_removed;
+    ASSERT_TRUE(step(keeper, kept, &stats, &removed));
+    RegionExecutor once;
+    ASSERT_TRUE(step(once, fresh, &fresh_stats, &fresh_removed));
+    EXPECT_TRUE(keeper.KeepsAcross(kept));
+    EXPECT_TRUE(keeper.CheckAcross(kept).ok()) << keeper.CheckAcross(kept);
+    EXPECT_EQ(kept.origin(), fresh.origin());
+    EXPECT_EQ(kept.twin(), fresh.twin());
+    EXPECT_EQ(removed, fresh_removed);
+    held += stats.held;
+    removed_total += static_cast<uint32_t>(removed.size());
+    std::vector<uint8_t> gone(kN, 0);
+    for (uint32_t v : removed) gone[v] = 1;
+    std::vector<uint32_t> sites;
+    for (uint32_t v = 0; v < kN; ++v) {
+      if (!gone[v]) sites.push_back(v);
+    }
+    EXPECT_EQ(FiniteEdges(kept), FiniteEdges(BuildDelaunayWithCgal(to, sites)));
+    if (!removed.empty()) break;  // the rest would need re-insertion
+    pos = to;
+  }
+  EXPECT_GT(held, 0u);
+  EXPECT_GT(removed_total, 0u);
+}
+
+// The array is dropped after a step that flips more than
+// keep_across_flips of the triangles; the next dense step then reads the
+// mesh, and the one after a step that flipped little fills it again.
+TEST(RegionExecutor, DropsTheApexesAcrossAfterManyFlips) {
+  constexpr size_t kN = 3000;
+  const std::vector<Vec2> raw = testing::UniformPoints(kN, 13);
+  std::vector<Vec2> pos;
+  for (uint32_t i : HilbertOrder(raw)) pos.push_back(raw[i]);
+  Mesh mesh = BuildDelaunayWithCgal(pos, AllSites(kN));
+  mesh.SortTrianglesByVertex();
+  RegionExecutor x;
+  RegionStepPolicy policy;
+  policy.region_triangles = 256;
+  policy.max_halvings = 60;  // nothing removed
+  policy.keep_across_flips = 0.05;
+  std::mt19937_64 rng(3);
+  const double spacing = 1.0 / std::sqrt(double(kN));
+  const std::vector<uint32_t> moved = AllSites(kN);
+  struct Expect {
+    double sigma;
+    bool read_kept;   // the step's scan read kept entries
+    bool kept_after;  // they are kept for the next step
+  };
+  const Expect steps[] = {
+      {0.01, false, true},   // fills them (few flips)
+      {0.3, true, false},    // reads them, flips many: dropped
+      {0.01, false, false},  // reads the mesh; flips few again
+      {0.01, false, true},   // fills them
+      {0.01, true, true},    // reads them
+  };
+  for (size_t s = 0; s < std::size(steps); ++s) {
+    SCOPED_TRACE(s);
+    std::normal_distribution<double> g(0.0, steps[s].sigma * spacing);
+    std::vector<Vec2> to = pos;
+    for (Vec2& p : to) p = {p.x + g(rng), p.y + g(rng)};
+    std::vector<Vec2> work = to;
+    std::vector<uint32_t> removed, hints(kN, kNoVertex);
+    RegionStepStats stats;
+    std::string reason;
+    ASSERT_TRUE(x.Step(mesh, pos, work, moved, policy, &stats, &removed, &hints,
+                       &reason))
+        << reason;
+    ASSERT_TRUE(removed.empty());
+    const uint64_t flips = stats.flips.interior_fix + stats.flips.hull_absorb +
+                           stats.flips.hull_release + stats.flips.delaunay;
+    EXPECT_EQ(flips > 0.05 * mesh.num_triangles(), steps[s].sigma > 0.1)
+        << flips;
+    EXPECT_EQ(stats.across_kept, steps[s].read_kept);
+    EXPECT_EQ(x.KeepsAcross(mesh), steps[s].kept_after);
+    EXPECT_TRUE(x.CheckAcross(mesh).ok()) << x.CheckAcross(mesh);
+    EXPECT_EQ(FiniteEdges(mesh),
+              FiniteEdges(BuildDelaunayWithCgal(to, AllSites(kN))));
+    pos = to;
+  }
+}
+
 TEST(MeshScan, FindsWhatTheRulesFind) {
   std::mt19937_64 rng(11);
   struct Case {

@@ -173,6 +173,44 @@ TEST(CachedCellIndex, TwoRadiiAndOneNearestPerStep) {
   EXPECT_FALSE(t->HasCachedCellIndex(Use::kNearest, 0.0));
 }
 
+// The region executor keeps the apexes across each edge from step to step,
+// through the re-insertion of held vertices that the driver does between
+// steps (it names every triangle it writes): the dense step after one that
+// re-inserted reads them. Validate() checks the kept entries after every
+// step, and the mesh is the one a triangulation that never keeps them
+// makes.
+TEST(RegionSteps, KeepTheApexesAcrossThroughReinsertion) {
+  constexpr size_t kN = 3000;
+  const std::vector<Vec2> pts = testing::UniformPoints(kN, 21);
+  TriangulationOptions keep, fill;
+  keep.region.keep_across_flips = 1;  // whatever the step flips
+  fill.region.keep_across_flips = 0;
+  auto a = Triangulation::Create(pts, keep);
+  auto b = Triangulation::Create(pts, fill);
+  ASSERT_TRUE(a.ok() && b.ok());
+  std::mt19937_64 rng(21);
+  const double sigma = 0.15 / std::sqrt(double(kN));
+  int kept = 0, kept_after_reinsertion = 0;
+  bool reinserted = false;
+  for (int s = 0; s < 12; ++s) {
+    const DisplacementBatch d = testing::Brownian(kN, sigma, rng);
+    auto ra = a->ApplyDisplacements(d);
+    auto rb = b->ApplyDisplacements(d);
+    ASSERT_TRUE(ra.ok()) << ra.status();
+    ASSERT_TRUE(rb.ok()) << rb.status();
+    ASSERT_TRUE(a->Validate().ok()) << "step " << s << ": " << a->Validate();
+    ASSERT_EQ(a->Edges(), b->Edges()) << "step " << s;
+    EXPECT_FALSE(rb->across_kept);
+    if (ra->across_kept) {
+      ++kept;
+      kept_after_reinsertion += reinserted;
+    }
+    reinserted = ra->path == UpdatePath::kReinserted;
+  }
+  EXPECT_GE(kept, 6);
+  EXPECT_GT(kept_after_reinsertion, 0);
+}
+
 // Position queries' hint grid outlives a few steps (a hint is only where a
 // walk starts), renumbered with the points when a step renumbers them; age,
 // points that join or leave, or coincident points bring a new one. The

@@ -179,7 +179,7 @@ TEST_F(SecurityTest, TenantsSeeOnlyTheirOwnSessions) {
   auto alpha_list = alpha->ListSessions();
   ASSERT_TRUE(alpha_list.ok());
   EXPECT_EQ(alpha_list->size(), 2u);
-  // Delta's memory limit: 1 MiB holds about 3000 points (350 B each).
+  // Delta's memory limit: 1 MiB holds about 2800 points (375 B each).
   auto delta = Connect(Secure(kTokenD));
   EXPECT_TRUE(
       delta->CreateSession(testing::UniformXY(2000, 10), v1::SessionOptions())
@@ -196,8 +196,8 @@ TEST_F(SecurityTest, TenantsSeeOnlyTheirOwnSessions) {
 }
 
 // A tenant's memory limit counts a session on the device executor with
-// the executor's host memory (and, emulated, its device memory): 734 bytes
-// per point and 64 KiB, not 350 per point.
+// the executor's host memory (and, emulated, its device memory): 759 bytes
+// per point and 64 KiB, not 375 per point.
 TEST_F(SecurityTest, TenantMemoryCountsDeviceSessions) {
 #if !defined(KINETRI_SERVER_EMULATED_DEVICE)
   GTEST_SKIP() << "built without the CCCL headers: no emulated device";
@@ -213,7 +213,7 @@ TEST_F(SecurityTest, TenantMemoryCountsDeviceSessions) {
       delta->CreateSession(testing::UniformXY(1000, 13), v1::SessionOptions());
   ASSERT_TRUE(on_device.ok()) << on_device.status();
   EXPECT_EQ(on_device->backend(), "emulated");
-  // Beside it (781 KiB), a CPU session of 500 points (171 KiB) fits, and
+  // Beside it (805 KiB), a CPU session of 500 points (183 KiB) fits, and
   // one of 1000 does not.
   v1::SessionOptions cpu;
   cpu.set_backend(v1::BACKEND_CPU);
