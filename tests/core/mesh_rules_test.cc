@@ -681,6 +681,17 @@ TEST(RegionExecutor, StepGivesBackEveryTarget) {
   EXPECT_GE(stops, 3);
 }
 
+// The Delaunay mesh of n uniform points (*pos) in spatial order, triangles
+// sorted, as Triangulation keeps them: regions then hold whole stars.
+Mesh SpatiallyOrderedMesh(size_t n, uint64_t seed, std::vector<Vec2>* pos) {
+  const std::vector<Vec2> raw = testing::UniformPoints(n, seed);
+  pos->clear();
+  for (uint32_t i : HilbertOrder(raw)) pos->push_back(raw[i]);
+  Mesh mesh = BuildDelaunayWithCgal(*pos, AllSites(n));
+  mesh.SortTrianglesByVertex();
+  return mesh;
+}
+
 // The apexes across every half-edge that the region executor keeps from
 // one step to the next (filled by a dense scan, refreshed by every flip,
 // unflip and removal) are the mesh's after every step that keeps them, and
@@ -690,11 +701,8 @@ TEST(RegionExecutor, StepGivesBackEveryTarget) {
 // removed.
 TEST(RegionExecutor, KeepsTheApexesAcrossEachEdge) {
   constexpr size_t kN = 3000;
-  const std::vector<Vec2> raw = testing::UniformPoints(kN, 12);
   std::vector<Vec2> pos;
-  for (uint32_t i : HilbertOrder(raw)) pos.push_back(raw[i]);
-  Mesh kept = BuildDelaunayWithCgal(pos, AllSites(kN));
-  kept.SortTrianglesByVertex();
+  Mesh kept = SpatiallyOrderedMesh(kN, 12, &pos);
   Mesh fresh = kept;
   RegionExecutor keeper;
   RegionStepPolicy policy;
@@ -775,11 +783,8 @@ TEST(RegionExecutor, KeepsTheApexesAcrossEachEdge) {
 // mesh, and the one after a step that flipped little fills it again.
 TEST(RegionExecutor, DropsTheApexesAcrossAfterManyFlips) {
   constexpr size_t kN = 3000;
-  const std::vector<Vec2> raw = testing::UniformPoints(kN, 13);
   std::vector<Vec2> pos;
-  for (uint32_t i : HilbertOrder(raw)) pos.push_back(raw[i]);
-  Mesh mesh = BuildDelaunayWithCgal(pos, AllSites(kN));
-  mesh.SortTrianglesByVertex();
+  Mesh mesh = SpatiallyOrderedMesh(kN, 13, &pos);
   RegionExecutor x;
   RegionStepPolicy policy;
   policy.region_triangles = 256;
