@@ -3,15 +3,21 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
-bash scripts/build.sh
-ctest --test-dir build --output-on-failure -j "$(nproc)"
+# Each phase prints how long it took (CI has a 90-minute limit).
+phase() {
+  local start=$SECONDS
+  "$@"
+  echo "[test] $* took $((SECONDS - start)) s (total $SECONDS s)"
+}
+phase bash scripts/build.sh
+phase ctest --test-dir build --output-on-failure -j "$(nproc)"
 # The suite again under AddressSanitizer + UndefinedBehaviorSanitizer
 # (./build-asan, about 10 minutes on 2 cores), then the concurrency tests
 # under ThreadSanitizer (./build-tsan, about 8 minutes), then libFuzzer over
 # the service's requests for 60 s (./build-fuzz, clang, about 3 minutes);
 # KINETRI_SKIP_SANITIZERS=1 skips all three.
 if [[ "${KINETRI_SKIP_SANITIZERS:-0}" != 1 ]]; then
-  bash scripts/test_sanitizers.sh
-  bash scripts/test_tsan.sh
-  bash scripts/fuzz.sh
+  phase bash scripts/test_sanitizers.sh
+  phase bash scripts/test_tsan.sh
+  phase bash scripts/fuzz.sh
 fi
