@@ -12,9 +12,9 @@ phase() {
 phase bash scripts/build.sh
 phase ctest --test-dir build --output-on-failure -j "$(nproc)"
 # The suite again under AddressSanitizer + UndefinedBehaviorSanitizer
-# (./build-asan, about 10 minutes on 2 cores), then the concurrency tests
-# under ThreadSanitizer (./build-tsan, about 8 minutes), then libFuzzer over
-# the service's requests for 60 s (./build-fuzz, clang, about 3 minutes);
+# (./build-asan, about 28 minutes on 2 cores), then the concurrency tests
+# under ThreadSanitizer (./build-tsan, about 11 minutes), then libFuzzer over
+# the service's requests for 60 s (./build-fuzz, clang, about 4 minutes);
 # KINETRI_SKIP_SANITIZERS=1 skips all three.
 if [[ "${KINETRI_SKIP_SANITIZERS:-0}" != 1 ]]; then
   phase bash scripts/test_sanitizers.sh
