@@ -202,7 +202,7 @@ int main(int argc, char** argv) {
         "re-inserted %u, deferred %u, fix flips %llu, hull %llu/%llu, "
         "Delaunay flips %llu in %u rounds; scan %.3f s%s, fix %.3f s, "
         "legalize %.3f s, held %.3f s, re-insert %.3f s, tolerances %.3f s "
-        "(%u moved points quiet)%s%s) | CGAL rebuild "
+        "(%u moved points quiet)%s%s%s) | CGAL rebuild "
         "%.4f s | ratio %.3f\n",
         s, up, kinetri::core::UpdatePathName(rep->path), rep->substeps,
         rep->held_vertices, rep->local_halvings, rep->reinserted, rep->deferred,
@@ -214,7 +214,11 @@ int main(int argc, char** argv) {
         rep->fix_seconds, rep->legalize_seconds, rep->held_seconds,
         rep->reinsert_seconds, rep->filter_seconds, rep->quiet_points,
         rep->fallback_reason.empty() ? "" : "; rebuilt because: ",
-        rep->fallback_reason.c_str(), cg, up / cg);
+        rep->fallback_reason.c_str(),
+        rep->renumbered         ? "; points renumbered"
+        : rep->triangles_sorted ? "; triangles sorted"
+                                : "",
+        cg, up / cg);
     if (opt.executor == kinetri::core::Executor::kDevice) {
       std::printf(
           "  device: %.1f MB across the bus in %.3f s, %llu device "

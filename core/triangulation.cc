@@ -296,6 +296,7 @@ Triangulation Triangulation::Clone() const {
   t.line_ = line_;
   t.line_rank_ = line_rank_;
   t.baseline_span_ = baseline_span_;
+  t.baseline_triangle_span_ = baseline_triangle_span_;
   t.steps_ = steps_;
   if (motion_filter_.valid()) t.motion_filter_ = motion_filter_;
   t.filter_wait_ = filter_wait_;
@@ -532,6 +533,7 @@ bool Triangulation::Rebuild(const std::vector<Vec2>& positions_by_ext,
     for (uint32_t r = 0; r < line_.size(); ++r) line_rank_[line_[r]] = r;
   }
   baseline_span_ = MeanEdgeSpan();
+  baseline_triangle_span_ = MeanTriangleSpan();
   return true;
 }
 
@@ -574,6 +576,63 @@ double Triangulation::MeanEdgeSpan() const {
         return a;
       });
   return acc.count ? acc.sum / static_cast<double>(acc.count) : 0.0;
+}
+
+double Triangulation::MeanTriangleSpan() const {
+  if (mesh_.empty()) return 0.0;
+  const MeshView m = mesh_.view();
+  struct Acc {
+    double sum = 0.0;
+    uint64_t count = 0;
+  };
+  // A sample, as in MeanEdgeSpan. (Both sum whole numbers far below 2^53,
+  // exactly in any order: the decisions they make are the same for any
+  // number of threads.)
+  constexpr size_t kStride = 31;
+  const size_t samples = (mesh_.num_half_edges() + kStride - 1) / kStride;
+  const Acc acc = tbb::parallel_reduce(
+      tbb::blocked_range<size_t>(0, samples, 1 << 12), Acc{},
+      [&](const tbb::blocked_range<size_t>& r, Acc a) {
+        for (size_t i = r.begin(); i != r.end(); ++i) {
+          const uint32_t e = static_cast<uint32_t>(i * kStride);
+          const uint32_t f = m.twin[e];
+          if (m.origin[e] == kNoVertex || f >= m.num_half_edges) continue;
+          const uint32_t t = TriangleOf(e), u = TriangleOf(f);
+          a.sum += static_cast<double>(t > u ? t - u : u - t);
+          ++a.count;
+        }
+        return a;
+      },
+      [](Acc a, const Acc& b) {
+        a.sum += b.sum;
+        a.count += b.count;
+        return a;
+      });
+  return acc.count ? acc.sum / static_cast<double>(acc.count) : 0.0;
+}
+
+void Triangulation::KeepLocality(StepReport* report) {
+  if (MeanEdgeSpan() > options_.renumber_stretch * baseline_span_ + 1.0) {
+    Renumber();
+    report->renumbered = true;
+    return;
+  }
+  const double limit =
+      options_.triangle_sort_stretch * baseline_triangle_span_ + 1.0;
+  // (Steps end with no free slots; SortTriangles keys every slot by a
+  // vertex.)
+  if (mesh_.empty() || mesh_.has_free_triangles() ||
+      !(MeanTriangleSpan() > limit)) {
+    return;
+  }
+  // The same triangles in new slots: what refers to slots goes (the region
+  // executor's kept apexes, by the mesh's content version; the device
+  // copy); what refers to points stays (the numbering, the hint grids, the
+  // vertex tolerances: they certify triangles, wherever they are kept).
+  mesh_.SortTrianglesByVertex();
+  MeshChangedOnHost();
+  baseline_triangle_span_ = MeanTriangleSpan();
+  report->triangles_sorted = true;
 }
 
 void Triangulation::RenumberCarriedHints(
@@ -622,6 +681,7 @@ void Triangulation::Renumber() {
     for (uint32_t r = 0; r < line_.size(); ++r) line_rank_[line_[r]] = r;
   }
   baseline_span_ = MeanEdgeSpan();
+  baseline_triangle_span_ = MeanTriangleSpan();
 }
 
 void Triangulation::KeepHeldBack(const std::vector<uint32_t>& held,
@@ -1871,10 +1931,8 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
                       : report.substeps > 1 ? UpdatePath::kSubdivided
                                             : UpdatePath::kLocal;
         if (options_.renumber_check_interval > 0 &&
-            steps_ % options_.renumber_check_interval == 0 &&
-            MeanEdgeSpan() > options_.renumber_stretch * baseline_span_ + 1.0) {
-          Renumber();
-          report.renumbered = true;
+            steps_ % options_.renumber_check_interval == 0) {
+          KeepLocality(&report);
         }
       } else {
         std::vector<Vec2> by_ext(n);
@@ -1902,10 +1960,8 @@ absl::StatusOr<StepReport> Triangulation::ApplyDisplacements(
         if (report.path == UpdatePath::kNoop) report.path = UpdatePath::kLocal;
         if (options_.renumber_check_interval > 0 &&
             steps_ % options_.renumber_check_interval == 0 &&
-            !report.renumbered &&
-            MeanEdgeSpan() > options_.renumber_stretch * baseline_span_ + 1.0) {
-          Renumber();
-          report.renumbered = true;
+            !report.renumbered) {
+          KeepLocality(&report);
         }
       } else {
         // Degenerate leftovers only (fewer than three positions, or a

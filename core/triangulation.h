@@ -85,8 +85,19 @@ struct TriangulationOptions {
   // Where the device executor runs (executor == kDevice); Create fails
   // with FAILED_PRECONDITION when this build or machine lacks it.
   device::DeviceBackend device_backend = device::DeviceBackend::kEmulated;
-  double renumber_stretch = 2.0;    // renumber when edge span grows this much
-  int renumber_check_interval = 8;  // steps between locality checks
+  // Every renumber_check_interval steps (0: never), the points are
+  // renumbered along a Hilbert curve (and the triangles sorted by them)
+  // when the mean id span of an edge has grown renumber_stretch times since
+  // the last numbering; otherwise the triangles alone are sorted again when
+  // the mean slot span between neighbouring triangles has grown
+  // triangle_sort_stretch times since the last sort. (Flips keep their two
+  // slots, so over many steps the slots of neighbouring triangles drift
+  // apart: the region executor defers more edges across its regions and
+  // every pass reads the mesh less in order. A sort costs about 90 ms at
+  // 1M points on 2 cores; docs/BENCHMARKS.md.)
+  double renumber_stretch = 2.0;
+  double triangle_sort_stretch = 4.0;
+  int renumber_check_interval = 8;
 };
 
 // A batch of motion, and of points that leave and join. `ids` empty means
@@ -139,6 +150,9 @@ struct StepReport {
   FlipCounts flips;
   std::string fallback_reason;  // why the step was rebuilt, if it was
   bool renumbered = false;
+  // The triangles alone were sorted again (renumber_stretch); the points
+  // kept their numbering.
+  bool triangles_sorted = false;
   uint32_t num_sites = 0;   // distinct positions after the step
   uint32_t num_points = 0;  // points after the step
   double seconds = 0.0;
@@ -414,6 +428,11 @@ class Triangulation {
   // sites_ and has_duplicates_ from rep_ and dup_next_.
   void RefreshSites();
   double MeanEdgeSpan() const;
+  // The mean distance between the slots of neighbouring triangles.
+  double MeanTriangleSpan() const;
+  // The locality check after a step (renumber_stretch): renumbers, or sorts
+  // the triangles again, when their order has spread; says which in report.
+  void KeepLocality(StepReport* report);
   // Smallest external id among the points of the site of vertex v.
   uint32_t SiteId(uint32_t v) const;
   void Renumber();
@@ -454,7 +473,8 @@ class Triangulation {
   bool too_tangled_ = false;
   std::vector<uint32_t> removal_touched_;
   std::vector<uint32_t> reinsert_hints_;  // RegionUpdate's walk starts
-  double baseline_span_ = 0.0;
+  double baseline_span_ = 0.0;            // MeanEdgeSpan at the last numbering
+  double baseline_triangle_span_ = 0.0;   // MeanTriangleSpan at the last sort
   uint64_t steps_ = 0;
 };
 

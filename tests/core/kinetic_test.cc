@@ -952,3 +952,73 @@ TEST(Kinetic, RenumberingKeepsIdsAndMesh) {
 
 }  // namespace
 }  // namespace kinetri::core
+
+namespace kinetri::core {
+namespace {
+
+TEST(Kinetic, SortingTrianglesAgainKeepsIdsAndMesh) {
+  // A locality check after every step whose triangle threshold always
+  // triggers and whose renumbering threshold never does: the triangles are
+  // sorted into new slots each step (the vertex tolerances, the region
+  // executor's kept apexes and the device copy all refer to slots) while
+  // ids, positions and the Delaunay edges stay exact.
+  const size_t n = 2500;
+  TriangulationOptions opt = testing::ExecutorOptions();
+  opt.renumber_check_interval = 1;
+  opt.renumber_stretch = 1e9;
+  opt.triangle_sort_stretch = 0.0;
+  auto pts = testing::UniformPoints(n, 131);
+  auto t = Triangulation::Create(pts, opt);
+  ASSERT_TRUE(t.ok());
+  std::mt19937_64 rng(132);
+  int sorted = 0;
+  for (int s = 0; s < 6; ++s) {
+    // Small steps (the tolerances and kept apexes apply) and larger ones.
+    const double sigma = (s % 2 == 0 ? 0.01 : 0.3) / std::sqrt(double(n));
+    std::normal_distribution<double> g(0.0, sigma);
+    std::vector<Vec2> d(n);
+    for (size_t i = 0; i < n; ++i) {
+      d[i] = {g(rng), g(rng)};
+      pts[i] = {pts[i].x + d[i].x, pts[i].y + d[i].y};
+    }
+    auto r = t->ApplyDisplacements(DisplacementBatch::Dense(d));
+    ASSERT_TRUE(r.ok()) << r.status();
+    // (A step rebuilt from scratch, as the round and device executors do
+    // at the larger motion, renumbers the points instead.)
+    const bool rebuilt = r->path == UpdatePath::kRebuilt;
+    if (!rebuilt) ++sorted;
+    EXPECT_EQ(r->triangles_sorted, !rebuilt) << "step " << s;
+    EXPECT_EQ(r->renumbered, rebuilt) << "step " << s;
+    ASSERT_TRUE(t->Validate().ok()) << t->Validate();
+    for (uint32_t i = 0; i < n; ++i) {
+      ASSERT_EQ(t->Position(i), pts[i]) << "id " << i << " step " << s;
+    }
+    EXPECT_EQ(testing::EdgesAsPositions(*t),
+              testing::CgalDelaunayEdges(t->Positions()));
+  }
+  EXPECT_GE(sorted, 3);  // every small step at least
+}
+
+TEST(Kinetic, TrianglesStayInTheirSlotsWhileTheyKeepTheirOrder) {
+  // At the default threshold a few small steps leave the slots in order:
+  // the check runs, nothing is sorted.
+  const size_t n = 2500;
+  TriangulationOptions opt = testing::ExecutorOptions();
+  opt.renumber_check_interval = 1;
+  auto pts = testing::UniformPoints(n, 133);
+  auto t = Triangulation::Create(pts, opt);
+  ASSERT_TRUE(t.ok());
+  std::mt19937_64 rng(134);
+  std::normal_distribution<double> g(0.0, 0.05 / std::sqrt(double(n)));
+  for (int s = 0; s < 3; ++s) {
+    std::vector<Vec2> d(n);
+    for (auto& v : d) v = {g(rng), g(rng)};
+    auto r = t->ApplyDisplacements(DisplacementBatch::Dense(d));
+    ASSERT_TRUE(r.ok()) << r.status();
+    EXPECT_FALSE(r->triangles_sorted) << "step " << s;
+    EXPECT_FALSE(r->renumbered) << "step " << s;
+  }
+}
+
+}  // namespace
+}  // namespace kinetri::core
