@@ -150,8 +150,8 @@ struct StepReport {
   FlipCounts flips;
   std::string fallback_reason;  // why the step was rebuilt, if it was
   bool renumbered = false;
-  // The triangles alone were sorted again (renumber_stretch); the points
-  // kept their numbering.
+  // The triangles alone were sorted again (triangle_sort_stretch); the
+  // points kept their numbering.
   bool triangles_sorted = false;
   uint32_t num_sites = 0;   // distinct positions after the step
   uint32_t num_points = 0;  // points after the step
@@ -430,8 +430,9 @@ class Triangulation {
   double MeanEdgeSpan() const;
   // The mean distance between the slots of neighbouring triangles.
   double MeanTriangleSpan() const;
-  // The locality check after a step (renumber_stretch): renumbers, or sorts
-  // the triangles again, when their order has spread; says which in report.
+  // The locality check after a step (renumber_stretch and
+  // triangle_sort_stretch): renumbers, or sorts the triangles again, when
+  // their order has spread; says which in report.
   void KeepLocality(StepReport* report);
   // Smallest external id among the points of the site of vertex v.
   uint32_t SiteId(uint32_t v) const;
