@@ -614,10 +614,7 @@ void Triangulation::KeepLocality(StepReport* report) {
       options_.triangle_sort_stretch * baseline_triangle_span_ + 1.0;
   // (Steps end with no free slots; SortTriangles keys every slot by a
   // vertex.)
-  if (mesh_.empty() || mesh_.has_free_triangles() ||
-      !(MeanTriangleSpan() > limit)) {
-    return;
-  }
+  if (mesh_.has_free_triangles() || !(MeanTriangleSpan() > limit)) return;
   // The same triangles in new slots: what refers to slots goes (the region
   // executor's kept apexes, by the mesh's content version; the device
   // copy); what refers to points stays (the numbering, the hint grids, the

@@ -950,17 +950,11 @@ TEST(Kinetic, RenumberingKeepsIdsAndMesh) {
   }
 }
 
-}  // namespace
-}  // namespace kinetri::core
-
-namespace kinetri::core {
-namespace {
-
 TEST(Kinetic, SortingTrianglesAgainKeepsIdsAndMesh) {
   // A locality check after every step whose triangle threshold always
   // triggers and whose renumbering threshold never does: the triangles are
-  // sorted into new slots each step (the vertex tolerances, the region
-  // executor's kept apexes and the device copy all refer to slots) while
+  // sorted into new slots each step (the region executor's kept apexes and
+  // the device copy refer to slots; the vertex tolerances are kept) while
   // ids, positions and the Delaunay edges stay exact.
   const size_t n = 2500;
   TriangulationOptions opt = testing::ExecutorOptions();
@@ -971,17 +965,16 @@ TEST(Kinetic, SortingTrianglesAgainKeepsIdsAndMesh) {
   auto t = Triangulation::Create(pts, opt);
   ASSERT_TRUE(t.ok());
   std::mt19937_64 rng(132);
+  const double spacing = 1.0 / std::sqrt(double(n));
   int sorted = 0;
   for (int s = 0; s < 6; ++s) {
     // Small steps (the tolerances and kept apexes apply) and larger ones.
-    const double sigma = (s % 2 == 0 ? 0.01 : 0.3) / std::sqrt(double(n));
-    std::normal_distribution<double> g(0.0, sigma);
-    std::vector<Vec2> d(n);
+    const DisplacementBatch step =
+        Brownian(n, (s % 2 == 0 ? 0.01 : 0.3) * spacing, rng);
     for (size_t i = 0; i < n; ++i) {
-      d[i] = {g(rng), g(rng)};
-      pts[i] = {pts[i].x + d[i].x, pts[i].y + d[i].y};
+      pts[i] = {pts[i].x + step.values[i].x, pts[i].y + step.values[i].y};
     }
-    auto r = t->ApplyDisplacements(DisplacementBatch::Dense(d));
+    auto r = t->ApplyDisplacements(step);
     ASSERT_TRUE(r.ok()) << r.status();
     // (A step rebuilt from scratch, as the round and device executors do
     // at the larger motion, renumbers the points instead.)
@@ -1005,15 +998,12 @@ TEST(Kinetic, TrianglesStayInTheirSlotsWhileTheyKeepTheirOrder) {
   const size_t n = 2500;
   TriangulationOptions opt = testing::ExecutorOptions();
   opt.renumber_check_interval = 1;
-  auto pts = testing::UniformPoints(n, 133);
-  auto t = Triangulation::Create(pts, opt);
+  auto t = Triangulation::Create(testing::UniformPoints(n, 133), opt);
   ASSERT_TRUE(t.ok());
   std::mt19937_64 rng(134);
-  std::normal_distribution<double> g(0.0, 0.05 / std::sqrt(double(n)));
   for (int s = 0; s < 3; ++s) {
-    std::vector<Vec2> d(n);
-    for (auto& v : d) v = {g(rng), g(rng)};
-    auto r = t->ApplyDisplacements(DisplacementBatch::Dense(d));
+    auto r =
+        t->ApplyDisplacements(Brownian(n, 0.05 / std::sqrt(double(n)), rng));
     ASSERT_TRUE(r.ok()) << r.status();
     EXPECT_FALSE(r->triangles_sorted) << "step " << s;
     EXPECT_FALSE(r->renumbered) << "step " << s;
