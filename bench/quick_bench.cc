@@ -199,14 +199,15 @@ int main(int argc, char** argv) {
     cgal_total += cg;
     std::printf(
         "step %d: update %.4f s (%s, substeps %u, held %u, halvings %u, "
-        "re-inserted %u, deferred %u, fix flips %llu, hull %llu/%llu, "
+        "re-inserted %u, deferred %u, failed attempts %u, fix flips %llu, "
+        "hull %llu/%llu, "
         "Delaunay flips %llu in %u rounds; scan %.3f s%s, fix %.3f s, "
         "legalize %.3f s, held %.3f s, re-insert %.3f s, tolerances %.3f s "
         "(%u moved points quiet)%s%s%s) | CGAL rebuild "
         "%.4f s | ratio %.3f\n",
         s, up, kinetri::core::UpdatePathName(rep->path), rep->substeps,
         rep->held_vertices, rep->local_halvings, rep->reinserted, rep->deferred,
-        (unsigned long long)rep->flips.interior_fix,
+        rep->failed_attempts, (unsigned long long)rep->flips.interior_fix,
         (unsigned long long)rep->flips.hull_absorb,
         (unsigned long long)rep->flips.hull_release,
         (unsigned long long)rep->flips.delaunay, rep->flips.legalize_rounds,

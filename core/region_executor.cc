@@ -120,8 +120,8 @@ template <bool kBounded>
 void FixLoop(const MeshView& m, const Vec2* p, Bounds b,
              std::vector<uint32_t>& stack, std::vector<uint32_t>& waiting,
              std::vector<uint32_t>& deferred, std::vector<uint32_t>* log,
-             FlipCounts* counts, uint8_t* mark, uint32_t* ve,
-             uint32_t* across) {
+             FlipCounts* counts, uint8_t* mark, uint32_t* ve, uint32_t* across,
+             std::vector<uint32_t>* flipped = nullptr) {
   while (true) {
     bool progress = false;
     while (!stack.empty()) {
@@ -160,6 +160,10 @@ void FixLoop(const MeshView& m, const Vec2* p, Bounds b,
       if (log) log->push_back(prop.edge);
       CountFix(prop.kind, counts);
       if (mark) mark[fp[0]] = mark[fp[1]] = 1;
+      if (flipped) {
+        flipped->push_back(fp[0]);
+        flipped->push_back(fp[1]);
+      }
       if (across) {
         RefreshAcross(m, fp[0], across);
         RefreshAcross(m, fp[1], across);
@@ -267,19 +271,18 @@ void AppendStarAndHullRingFrom(const MeshView& m, uint32_t e0,
 }
 
 // The half-edges of the triangles around the origin of e0 and of the
-// triangles on both sides of the logged flips: what legalizing after a held
-// vertex's move must test. `around` is scratch.
+// triangles fixing flipped (`flipped`: both triangles of each flip, taken
+// when it ran: a later flip may rewrite a flipped half-edge's triangle, so
+// that its twin no longer lies in the other one): what legalizing after a
+// held vertex's move must test. `around` is scratch.
 void SeedLegalizeAfterMove(const MeshView& m, uint32_t e0,
-                           const std::vector<uint32_t>& log,
+                           const std::vector<uint32_t>& flipped,
                            std::vector<uint32_t>* around,
                            std::vector<uint32_t>* stack) {
   stack->clear();
   around->clear();
   AppendStarFrom(m, e0, around);
-  for (uint32_t e : log) {
-    around->push_back(TriangleOf(e));
-    around->push_back(TriangleOf(m.twin[e]));
-  }
+  around->insert(around->end(), flipped.begin(), flipped.end());
   for (uint32_t t : *around) {
     for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) stack->push_back(e);
   }
@@ -344,6 +347,26 @@ void RegionExecutor::Hold(uint32_t v, uint32_t edge,
     held_list_.push_back(v);
     held_edge_.push_back(edge);
     held_target_.push_back(target);
+  }
+}
+
+void RegionExecutor::HoldAroundStuck(const MeshView& m,
+                                     const std::vector<uint32_t>& stuck,
+                                     std::vector<uint32_t>* around) {
+  for (uint32_t t : stuck) {
+    for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
+      if (m.origin[e] >= held_.size()) continue;
+      around->clear();
+      AppendStarFrom(m, e, around);
+      for (uint32_t u : *around) {
+        for (uint32_t f = 3 * u; f < 3 * u + 3; ++f) {
+          const uint32_t w = m.origin[f];
+          if (w < held_.size() && !held_[w] && (*cur_)[w] != (*from_)[w]) {
+            Hold(w, f);
+          }
+        }
+      }
+    }
   }
 }
 
@@ -459,6 +482,7 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
   std::vector<uint32_t> around;
   for (int attempt = 0; attempt < policy.max_passes; ++attempt) {
     ++stats->fix_attempts;
+    const size_t held_before = held_list_.size();
     const Vec2* p = cur_->data();
     // Fix every region in parallel; nothing crosses a region boundary.
     tbb::parallel_for(tbb::blocked_range<size_t>(0, regions_.size(), 1),
@@ -513,6 +537,14 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
             }
           }
         }
+        if (held_list_.size() == before) {
+          // Every vertex of the stuck triangles is held or never moved: a
+          // triangle made by this pass's flips that turned over when its
+          // vertices were held (1M points, σ 0.1: about one step in ten).
+          // Their moving neighbours are held too, here, as a repeated
+          // attempt would do after undoing the whole pass.
+          HoldAroundStuck(m, serial.waiting, &around);
+        }
       } else if (HullWindsOnceFrom(mesh, *cur_, &hull_hint_)) {
         break;
       } else {
@@ -566,7 +598,11 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
       Undo(m, it->log, ve, across);
     }
     // Hold the culprits; if they are all held already, their moving
-    // neighbours too (in the restored mesh).
+    // neighbours too (in the restored mesh). An attempt that held vertices
+    // itself (around its stuck triangles) is repeated even if no more can
+    // be held: undone, its holds change the flips that made those
+    // triangles.
+    const bool held_here = held_list_.size() > held_before;
     bool held_any = false;
     for (int widen = 0; widen < 2 && !held_any; ++widen) {
       if (widen == 1) {
@@ -599,7 +635,7 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
         tri_mark_[t] = 1;
       }
     }
-    if (!held_any) {
+    if (!held_any && !held_here) {
       *reason = stuck ? "fixing stuck with every culprit held"
                       : "hull winds twice with every hull vertex held";
       return false;
@@ -618,7 +654,8 @@ bool RegionExecutor::MoveHeldInRegion(
   uint32_t* ve = mesh.mutable_vertex_edge().data();
   uint32_t* const across = LiveAcross();
   const Bounds b{lo, hi};
-  thread_local std::vector<uint32_t> around, stack, waiting, deferred, log;
+  thread_local std::vector<uint32_t> around, stack, waiting, deferred, log,
+      flipped;
   // Only this region writes v's vertex_edge while v's star lies in it.
   const uint32_t e0 =
       std::atomic_ref<uint32_t>(ve[v]).load(std::memory_order_relaxed);
@@ -646,9 +683,10 @@ bool RegionExecutor::MoveHeldInRegion(
     waiting.clear();
     deferred.clear();
     log.clear();
+    flipped.clear();
     FlipCounts c;
     FixLoop<true>(m, p, b, stack, waiting, deferred, &log, &c, tri_mark_.data(),
-                  ve, across);
+                  ve, across, &flipped);
     if (!deferred.empty() || c.hull_absorb + c.hull_release > 0) {
       // Reaches out of the region or changes the hull: the serial pass.
       Undo(m, log, ve, across);
@@ -659,7 +697,7 @@ bool RegionExecutor::MoveHeldInRegion(
     if (waiting.empty()) {
       counts += c;
       kept->insert(kept->end(), log.begin(), log.end());
-      SeedLegalizeAfterMove(m, mesh.vertex_edge()[v], log, &around, &stack);
+      SeedLegalizeAfterMove(m, mesh.vertex_edge()[v], flipped, &around, &stack);
       // Edges that cross the region are legalized in the serial pass.
       LegalizeLoop<true>(m, p, b, stack, *late_edges, &counts, tri_mark_.data(),
                          ve, across, kept);
@@ -686,7 +724,7 @@ bool RegionExecutor::MoveHeld(Mesh& mesh, uint32_t v, const Vec2& target,
   const MeshView m = mesh.view();
   uint32_t* ve = mesh.mutable_vertex_edge().data();
   uint32_t* const across = LiveAcross();
-  std::vector<uint32_t> around, stack, waiting, deferred, log;
+  std::vector<uint32_t> around, stack, waiting, deferred, log, flipped;
   FlipCounts counts;
   Vec2 goal = target;
   int halvings = 0;
@@ -704,9 +742,10 @@ bool RegionExecutor::MoveHeld(Mesh& mesh, uint32_t v, const Vec2& target,
     }
     waiting.clear();
     log.clear();
+    flipped.clear();
     FlipCounts c;
     FixLoop<false>(m, p, Bounds{}, stack, waiting, deferred, &log, &c,
-                   tri_mark_.data(), ve, across);
+                   tri_mark_.data(), ve, across, &flipped);
     const bool hull_changed = c.hull_absorb + c.hull_release > 0;
     const bool ok =
         waiting.empty() && (!(hull_near || hull_changed) ||
@@ -715,7 +754,7 @@ bool RegionExecutor::MoveHeld(Mesh& mesh, uint32_t v, const Vec2& target,
       counts += c;
       kept->insert(kept->end(), log.begin(), log.end());
       // Legalize around v and wherever fixing flipped.
-      SeedLegalizeAfterMove(m, mesh.vertex_edge()[v], log, &around, &stack);
+      SeedLegalizeAfterMove(m, mesh.vertex_edge()[v], flipped, &around, &stack);
       LegalizeLoop<false>(m, p, Bounds{}, stack, deferred, &counts,
                           tri_mark_.data(), ve, across, kept);
       if (goal == target) {
@@ -1090,7 +1129,8 @@ bool RegionExecutor::StepInPlace(Mesh& mesh, const std::vector<uint32_t>& moved,
     // regions each) in parallel, each taking its regions' deferred edges
     // and then the held vertices they could not move; then serially what
     // crosses those.
-    const uint32_t crt = rt * kCoarse;
+    // (In 64 bits: a region of more than 2^29 triangles once made this 0.)
+    const size_t crt = size_t{rt} * kCoarse;
     const size_t num_coarse = (size_t{nt} + crt - 1) / crt;
     coarse_.resize(num_coarse);
     std::vector<RegionStepStats> cstats(num_coarse);
@@ -1110,9 +1150,9 @@ bool RegionExecutor::StepInPlace(Mesh& mesh, const std::vector<uint32_t>& moved,
               cg.stack.insert(cg.stack.end(), g.deferred.rbegin(),
                               g.deferred.rend());
             }
-            const Bounds b{static_cast<uint32_t>(c * crt),
-                           static_cast<uint32_t>(
-                               std::min<size_t>(nt, (c + 1) * size_t{crt}))};
+            const Bounds b{
+                static_cast<uint32_t>(c * crt),
+                static_cast<uint32_t>(std::min<size_t>(nt, (c + 1) * crt))};
             LegalizeLoop<true>(m, p, b, cg.stack, cg.deferred, &cg.counts,
                                tri_mark_.data(), ve, across, &cg.log);
             // The held vertices its regions could not move.
@@ -1282,16 +1322,11 @@ bool RegionExecutor::FixSerial(Mesh& mesh, const std::vector<Vec2>& pos,
   std::vector<uint32_t> waiting, deferred, own_log;
   FlipCounts c;
   std::vector<uint32_t>* lg = log ? log : &own_log;
-  const size_t log_begin = lg->size();
+  // (Both triangles of each flip are taken as it runs: read from the log
+  // afterwards, a half-edge's twin may have moved on with a later flip.)
   FixLoop<false>(m, pos.data(), Bounds{}, stack, waiting, deferred, lg, &c,
-                 nullptr, mesh.mutable_vertex_edge().data(), across);
+                 nullptr, mesh.mutable_vertex_edge().data(), across, touched);
   if (counts) *counts += c;
-  if (touched) {
-    for (size_t i = log_begin; i < lg->size(); ++i) {
-      touched->push_back(TriangleOf((*lg)[i]));
-      touched->push_back(TriangleOf(m.twin[(*lg)[i]]));
-    }
-  }
   if (!waiting.empty()) {
     if (stuck) stuck->insert(stuck->end(), waiting.begin(), waiting.end());
     return false;

@@ -724,7 +724,9 @@ TEST(Kinetic, CancelledRebuildLeavesThePreviousStep) {
 
 // A step whose local attempt failed (here: one fixing pass allowed, and the
 // cost model never rebuilds) falls back to a rebuild, which polls too;
-// stopped, the previous step stays.
+// stopped, the previous step stays. (Motion of one mean spacing: at 0.4,
+// the one pass now succeeds, holding the neighbours of triangles stuck
+// with every vertex held.)
 TEST(Kinetic, CancelledFallbackAfterAFailedAttemptLeavesThePreviousStep) {
   if (!testing::kRegionExecutor) GTEST_SKIP() << "round executor";
   const size_t n = 70000;
@@ -734,7 +736,7 @@ TEST(Kinetic, CancelledFallbackAfterAFailedAttemptLeavesThePreviousStep) {
   o.region.max_passes = 1;
   o.region.held_vertex_cost = 0.0;
   const StepReport r = ExpectStoppableToTheEnd(
-      o, testing::UniformPoints(n, 134), Brownian(n, 0.4 * spacing, rng));
+      o, testing::UniformPoints(n, 134), Brownian(n, 1.0 * spacing, rng));
   EXPECT_NE(r.fallback_reason.find("fixing"), std::string::npos)
       << r.fallback_reason;
 }
@@ -877,6 +879,81 @@ TEST(Kinetic, HeldVerticesCollide) {
     }
     return DisplacementBatch::Absolute(next);
   });
+}
+
+// 20K uniform points in Brownian steps of 0.1 mean spacings (seed 3): the
+// sequence of the two regressions below. Returns each step's report after
+// checking the mesh against Validate() and CGAL.
+std::vector<StepReport> HeldVertexSequence(int steps) {
+  const size_t n = 20000;
+  const double spacing = 1.0 / std::sqrt(double(n));
+  auto t = Triangulation::Create(testing::UniformPoints(n, 3),
+                                 testing::ExecutorOptions());
+  EXPECT_TRUE(t.ok());
+  if (!t.ok()) return {};
+  std::mt19937_64 rng(1003);
+  std::vector<StepReport> reports;
+  for (int s = 0; s < steps; ++s) {
+    auto r = t->ApplyDisplacements(Brownian(n, 0.1 * spacing, rng));
+    EXPECT_TRUE(r.ok()) << r.status();
+    if (!r.ok()) break;
+    EXPECT_NE(r->path, UpdatePath::kRebuilt) << r->fallback_reason;
+    const absl::Status valid = t->Validate();
+    EXPECT_TRUE(valid.ok()) << valid << " (step " << s << ")";
+    EXPECT_EQ(EdgesAsPositions(*t), CgalDelaunayEdges(t->Positions()))
+        << "step " << s;
+    reports.push_back(*r);
+  }
+  return reports;
+}
+
+// Regression: a held vertex's move legalized the triangles of its fixing
+// flips as read from the flip log afterwards (the two sides of each logged
+// half-edge), but a later flip can rewrite a flipped half-edge's triangle,
+// whose twin then lies elsewhere: a triangle the first flip rewrote was
+// never legalized, and step 5 of this sequence ended with an edge that was
+// not locally Delaunay. The triangles are now taken as each flip runs.
+TEST(Kinetic, RegressionHeldMoveLegalizesEveryTriangleItsFixingFlipped) {
+  const std::vector<StepReport> reports = HeldVertexSequence(8);
+  ASSERT_EQ(reports.size(), 8u);
+  if (testing::kRegionExecutor) {
+    uint64_t held = 0;
+    for (const StepReport& r : reports) held += r.held_vertices;
+    EXPECT_GT(held, 0u);
+  }
+}
+
+// Regression: a triangle made by the fixing pass's flips can turn over
+// when the vertices around it are held back, until each of its own is
+// held or never moved; with nothing of its own left to hold, the whole
+// pass was undone and repeated with more vertices held (step 2 of this
+// sequence; at 1M points, σ 0.1, one step in ten, at 2-3 times the fixing
+// time). The moving neighbours of its vertices are now held where the
+// pass stands.
+TEST(Kinetic, RegressionStuckTriangleWithEveryVertexHeldIsFixedInPlace) {
+  if (!testing::kRegionExecutor) GTEST_SKIP() << "round executor";
+  const std::vector<StepReport> reports = HeldVertexSequence(4);
+  ASSERT_EQ(reports.size(), 4u);
+  for (size_t s = 0; s < reports.size(); ++s) {
+    EXPECT_EQ(reports[s].failed_attempts, 0u) << "step " << s;
+  }
+}
+
+// Regression: regions of 2^30 triangles (one region) made the coarse
+// regions' size, 8 regions, overflow 32 bits to 0 and a local step divided
+// by it.
+TEST(Kinetic, RegressionOneHugeRegionTakesALocalStep) {
+  const size_t n = 20000;
+  TriangulationOptions huge = testing::ExecutorOptions();
+  huge.region.region_triangles = 1u << 30;
+  auto t = Triangulation::Create(testing::UniformPoints(n, 3), huge);
+  ASSERT_TRUE(t.ok());
+  std::mt19937_64 rng(1003);
+  auto r = t->ApplyDisplacements(Brownian(n, 0.1 / std::sqrt(double(n)), rng));
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_NE(r->path, UpdatePath::kRebuilt) << r->fallback_reason;
+  EXPECT_TRUE(t->Validate().ok());
+  EXPECT_EQ(EdgesAsPositions(*t), CgalDelaunayEdges(t->Positions()));
 }
 
 // Both executors, any region size, any thread count: the same triangulation.
