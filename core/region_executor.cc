@@ -482,7 +482,9 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
   std::vector<uint32_t> around;
   for (int attempt = 0; attempt < policy.max_passes; ++attempt) {
     ++stats->fix_attempts;
-    const size_t held_before = held_list_.size();
+    // Whether this attempt held moving neighbours of triangles stuck with
+    // every vertex held (HoldAroundStuck).
+    bool held_around_stuck = false;
     const Vec2* p = cur_->data();
     // Fix every region in parallel; nothing crosses a region boundary.
     tbb::parallel_for(tbb::blocked_range<size_t>(0, regions_.size(), 1),
@@ -544,6 +546,7 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
           // Their moving neighbours are held too, here, as a repeated
           // attempt would do after undoing the whole pass.
           HoldAroundStuck(m, serial.waiting, &around);
+          held_around_stuck |= held_list_.size() > before;
         }
       } else if (HullWindsOnceFrom(mesh, *cur_, &hull_hint_)) {
         break;
@@ -598,11 +601,10 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
       Undo(m, it->log, ve, across);
     }
     // Hold the culprits; if they are all held already, their moving
-    // neighbours too (in the restored mesh). An attempt that held vertices
-    // itself (around its stuck triangles) is repeated even if no more can
-    // be held: undone, its holds change the flips that made those
-    // triangles.
-    const bool held_here = held_list_.size() > held_before;
+    // neighbours too (in the restored mesh). An attempt that held the
+    // neighbours of triangles stuck with every vertex held is repeated even
+    // if no more can be held: undone, its holds change the flips that made
+    // those triangles.
     bool held_any = false;
     for (int widen = 0; widen < 2 && !held_any; ++widen) {
       if (widen == 1) {
@@ -635,7 +637,7 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
         tri_mark_[t] = 1;
       }
     }
-    if (!held_any && !held_here) {
+    if (!held_any && !held_around_stuck) {
       *reason = stuck ? "fixing stuck with every culprit held"
                       : "hull winds twice with every hull vertex held";
       return false;
@@ -1129,7 +1131,8 @@ bool RegionExecutor::StepInPlace(Mesh& mesh, const std::vector<uint32_t>& moved,
     // regions each) in parallel, each taking its regions' deferred edges
     // and then the held vertices they could not move; then serially what
     // crosses those.
-    // (In 64 bits: a region of more than 2^29 triangles once made this 0.)
+    // (In 64 bits: in 32, regions of 2^29 triangles or more wrapped it, to
+    // 0 for multiples of 2^29.)
     const size_t crt = size_t{rt} * kCoarse;
     const size_t num_coarse = (size_t{nt} + crt - 1) / crt;
     coarse_.resize(num_coarse);
