@@ -350,20 +350,19 @@ void RegionExecutor::Hold(uint32_t v, uint32_t edge,
   }
 }
 
-void RegionExecutor::HoldAroundStuck(const MeshView& m,
-                                     const std::vector<uint32_t>& stuck,
-                                     std::vector<uint32_t>* around) {
-  for (uint32_t t : stuck) {
-    for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
-      if (m.origin[e] >= held_.size()) continue;
-      around->clear();
-      AppendStarFrom(m, e, around);
-      for (uint32_t u : *around) {
-        for (uint32_t f = 3 * u; f < 3 * u + 3; ++f) {
-          const uint32_t w = m.origin[f];
-          if (w < held_.size() && !held_[w] && (*cur_)[w] != (*from_)[w]) {
-            Hold(w, f);
-          }
+void RegionExecutor::HoldMovingNeighbours(const Mesh& mesh,
+                                          const std::vector<uint32_t>& vertices,
+                                          std::vector<uint32_t>* around) {
+  const MeshView m = mesh.view();
+  for (uint32_t v : vertices) {
+    if (v >= held_.size()) continue;
+    around->clear();
+    AppendStar(mesh, v, around);
+    for (uint32_t t : *around) {
+      for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
+        const uint32_t w = m.origin[e];
+        if (w < held_.size() && !held_[w] && (*cur_)[w] != (*from_)[w]) {
+          Hold(w, e);
         }
       }
     }
@@ -483,7 +482,7 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
   for (int attempt = 0; attempt < policy.max_passes; ++attempt) {
     ++stats->fix_attempts;
     // Whether this attempt held moving neighbours of triangles stuck with
-    // every vertex held (HoldAroundStuck).
+    // every vertex held.
     bool held_around_stuck = false;
     const Vec2* p = cur_->data();
     // Fix every region in parallel; nothing crosses a region boundary.
@@ -545,7 +544,13 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
           // vertices were held (1M points, σ 0.1: about one step in ten).
           // Their moving neighbours are held too, here, as a repeated
           // attempt would do after undoing the whole pass.
-          HoldAroundStuck(m, serial.waiting, &around);
+          std::vector<uint32_t> vertices;
+          for (uint32_t t : serial.waiting) {
+            for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
+              vertices.push_back(m.origin[e]);
+            }
+          }
+          HoldMovingNeighbours(mesh, vertices, &around);
           held_around_stuck |= held_list_.size() > before;
         }
       } else if (HullWindsOnceFrom(mesh, *cur_, &hull_hint_)) {
@@ -605,29 +610,15 @@ bool RegionExecutor::DenseFix(Mesh& mesh, const std::vector<uint32_t>& moved,
     // neighbours of triangles stuck with every vertex held is repeated even
     // if no more can be held: undone, its holds change the flips that made
     // those triangles.
-    bool held_any = false;
-    for (int widen = 0; widen < 2 && !held_any; ++widen) {
-      if (widen == 1) {
-        std::vector<uint32_t> ring;
-        for (uint32_t v : culprits) {
-          if (v >= held_.size()) continue;
-          around.clear();
-          AppendStar(mesh, v, &around);
-          for (uint32_t t : around) {
-            for (uint32_t e = 3 * t; e < 3 * t + 3; ++e) {
-              ring.push_back(m.origin[e]);
-            }
-          }
-        }
-        culprits = std::move(ring);
-      }
-      for (uint32_t v : culprits) {
-        if (v >= held_.size() || held_[v] || (*cur_)[v] == (*from_)[v])
-          continue;
-        Hold(v, mesh.vertex_edge()[v]);
-        held_any = true;
-      }
+    const size_t held_before = held_list_.size();
+    for (uint32_t v : culprits) {
+      if (v >= held_.size() || held_[v] || (*cur_)[v] == (*from_)[v]) continue;
+      Hold(v, mesh.vertex_edge()[v]);
     }
+    if (held_list_.size() == held_before) {
+      HoldMovingNeighbours(mesh, culprits, &around);
+    }
+    const bool held_any = held_list_.size() > held_before;
     // Every held vertex's star is repaired afresh (the undo moved some).
     for (uint32_t v : held_list_) {
       around.clear();

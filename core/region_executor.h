@@ -227,10 +227,12 @@ class RegionExecutor {
   void HoldCulprits(const Mesh& mesh, std::vector<uint32_t> suspects);
   // Holds every moving vertex of the hull (walked from hull_hint_).
   void HoldMovingHullVertices(const MeshView& m);
-  // Holds every moving vertex that is not held yet in the stars of the
-  // vertices of the `stuck` triangles (`around` is scratch).
-  void HoldAroundStuck(const MeshView& m, const std::vector<uint32_t>& stuck,
-                       std::vector<uint32_t>* around);
+  // Holds every moving vertex that is not held yet in the stars of
+  // `vertices` (from vertex_edge, which must be valid for them; others are
+  // skipped). `around` is scratch.
+  void HoldMovingNeighbours(const Mesh& mesh,
+                            const std::vector<uint32_t>& vertices,
+                            std::vector<uint32_t>* around);
   template <bool kBounded>
   void HoldCulpritsIn(const MeshView& m, RegionSlots b,
                       std::vector<uint32_t>& queue,
