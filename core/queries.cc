@@ -6,10 +6,15 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <limits>
 #include <memory>
 #include <mutex>
 #include <optional>
 #include <queue>
+
+#if defined(__SSE2__)
+#include <emmintrin.h>
+#endif
 
 #include "absl/container/flat_hash_set.h"
 #include "absl/strings/str_cat.h"
@@ -667,6 +672,130 @@ size_t SortClosestPrefix(const Vec2& q, std::pair<double, uint32_t>* a,
   return m;
 }
 
+// Compare-exchange of two packed keys (SelectClosestSmall): the smaller
+// in a. Branch-free: minsd / maxsd, written out (the compiler turns the
+// conditional form into branches, which mispredict on this data).
+inline void CompareExchange(double& a, double& b) {
+#if defined(__SSE2__)
+  const __m128d x = _mm_set_sd(a), y = _mm_set_sd(b);
+  a = _mm_cvtsd_f64(_mm_min_sd(x, y));
+  b = _mm_cvtsd_f64(_mm_max_sd(x, y));
+#else
+  const double lo = b < a ? b : a;
+  b = b < a ? a : b;
+  a = lo;
+#endif
+}
+
+// Sorts k[0..8) (Batcher's 19-comparator network).
+inline void SortEight(double* k) {
+  CompareExchange(k[0], k[2]);
+  CompareExchange(k[1], k[3]);
+  CompareExchange(k[4], k[6]);
+  CompareExchange(k[5], k[7]);
+  CompareExchange(k[0], k[4]);
+  CompareExchange(k[1], k[5]);
+  CompareExchange(k[2], k[6]);
+  CompareExchange(k[3], k[7]);
+  CompareExchange(k[0], k[1]);
+  CompareExchange(k[2], k[3]);
+  CompareExchange(k[4], k[5]);
+  CompareExchange(k[6], k[7]);
+  CompareExchange(k[2], k[4]);
+  CompareExchange(k[3], k[5]);
+  CompareExchange(k[1], k[4]);
+  CompareExchange(k[3], k[6]);
+  CompareExchange(k[1], k[2]);
+  CompareExchange(k[3], k[4]);
+  CompareExchange(k[5], k[6]);
+}
+
+// SortClosestPrefix for the common small case, without its branches on
+// the data (which mispredict about once per candidate): want <= 8 of
+// n <= 64 candidates. Each squared distance is packed with the
+// candidate's place in its lowest 6 bits (non-negative doubles order as
+// their bit patterns, so the packed keys order as the distances within
+// 2^-46 relative), and min / max networks keep the 8 smallest in order
+// and the smallest of the rest (the 9th) over blocks of 8 candidates.
+// Those within rounding (and the packing's error) of the want-th join the
+// front, as in SortClosestPrefix, and an exact insertion pass (nearly
+// always a pass of compares) orders them. Returns the front's length, or
+// 0 when this case does not apply (n > 64, want > 8, or the 9th within
+// rounding of the want-th: the general path handles those).
+template <typename PosOf>
+size_t SelectClosestSmall(const Vec2& q, std::pair<double, uint32_t>* a,
+                          size_t n, size_t want, PosOf&& pos) {
+  constexpr uint64_t kSlotBits = 0x3f;
+  if (n > kSlotBits + 1 || want > 8 || want == 0) return 0;
+  constexpr double kInf = std::numeric_limits<double>::infinity();
+  auto load = [a, n](size_t first, double* k) {
+    for (size_t i = 0; i < 8; ++i) {
+      k[i] = kInf;
+      if (first + i < n) {
+        uint64_t bits;
+        std::memcpy(&bits, &a[first + i].first, sizeof bits);
+        bits = (bits & ~kSlotBits) | (first + i);
+        std::memcpy(&k[i], &bits, sizeof bits);
+      }
+    }
+  };
+  double lo[8], block[8];
+  load(0, lo);
+  SortEight(lo);
+  // Once more than 8: the 8 smallest of lo and the next block, as a
+  // bitonic sequence, then in order; the block keeps the rest.
+  double ninth = kInf;
+  for (size_t first = 8; first < n; first += 8) {
+    load(first, block);
+    SortEight(block);
+    for (int i = 0; i < 8; ++i) CompareExchange(lo[i], block[7 - i]);
+    for (int i = 0; i < 4; ++i) CompareExchange(lo[i], lo[i + 4]);
+    CompareExchange(lo[0], lo[2]);
+    CompareExchange(lo[1], lo[3]);
+    CompareExchange(lo[4], lo[6]);
+    CompareExchange(lo[5], lo[7]);
+    for (int i = 0; i < 8; i += 2) CompareExchange(lo[i], lo[i + 1]);
+    for (int i = 0; i < 8; ++i) CompareExchange(ninth, block[i]);
+  }
+  auto slot = [&](double key) {
+    uint64_t bits;
+    std::memcpy(&bits, &key, sizeof bits);
+    return static_cast<size_t>(bits & kSlotBits);
+  };
+  const size_t have = std::min<size_t>(n, 8);
+  std::pair<double, uint32_t> front[8];
+  for (size_t i = 0; i < have; ++i) front[i] = a[slot(lo[i])];
+  size_t m = std::min(want, have);
+  if (n > want) {
+    // Entries after the want-th join the front while they may come before
+    // it exactly: within rounding of the cut, or within the packing's
+    // error (2^-46 relative) of it, with room to spare.
+    const double cut = front[want - 1].first;
+    auto may_join = [cut](double d) {
+      return d <= cut + internal::kDistErrBound * (cut + d) + cut * 0x1p-40;
+    };
+    while (m < have && may_join(front[m].first)) ++m;
+    // Past an entry that does not join, none does (they come later in the
+    // packed order, by more than its error). All 8 joined and more are
+    // left: the general path decides when the smallest of the rest (the
+    // 9th) may join too.
+    if (m == have && n > have && may_join(a[slot(ninth)].first)) return 0;
+  }
+  for (size_t i = 1; i < m; ++i) {
+    const auto x = front[i];
+    size_t j = i;
+    while (j > 0 && CompareCloserCached(q, pos(x.second), x.first,
+                                        pos(front[j - 1].second),
+                                        front[j - 1].first) < 0) {
+      front[j] = front[j - 1];
+      --j;
+    }
+    front[j] = x;
+  }
+  std::copy(front, front + m, a);
+  return m;
+}
+
 // The first `want` points of q's order (fewer if the set is smaller), by
 // best-first expansion from root over a bounded candidate list kept in the
 // exact order (squared distances in double decide clear cases). A candidate
@@ -796,8 +925,10 @@ bool KnnCellsRow(const CellIndex& cells, const Query& q, size_t want, double r0,
     }
     r *= kRetryGrowth;
   }
-  SortClosestPrefix(q.q, kept, num_kept, want,
-                    [pos](uint32_t c) -> const Vec2& { return pos[c]; });
+  auto pos_of = [pos](uint32_t c) -> const Vec2& { return pos[c]; };
+  if (SelectClosestSmall(q.q, kept, num_kept, want, pos_of) == 0) {
+    SortClosestPrefix(q.q, kept, num_kept, want, pos_of);
+  }
   out.resize(want);
   for (size_t i = 0; i < want; ++i) {
     out[i] = {exts[kept[i].second], std::sqrt(kept[i].first)};

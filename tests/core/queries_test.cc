@@ -382,6 +382,47 @@ TEST(Queries, KNearestFromCellsKeepsTiesAtTheCut) {
   }
 }
 
+// k nearest from cells where the closest candidates' squared distances
+// differ by less than their rounding, and by less than the 2^-46 the
+// small selection's packed keys keep of them: rings of points around each
+// query at radii equal up to a random 2^-47 relative (squared distances
+// up to 2^-46, the packing's resolution), an inner ring of 5
+// and an outer one of 4 at 1.6 times the radius. The cut falls inside a
+// ring (k = 3, 7: the near ties go to the exact order), in the gap after
+// one (k = 5, 9: the packed order is fixed by the exact pass alone), and
+// beyond both; every row equals brute force.
+TEST(Queries, KNearestFromCellsOrdersDistancesCloserThanTheirRounding) {
+  std::vector<Vec2> pts = testing::UniformPoints(5000, 71);
+  std::mt19937_64 rng(72);
+  std::uniform_real_distribution<double> u(0.0, 1.0);
+  const double rho = 0.2 / std::sqrt(5000.0);
+  std::vector<Vec2> qs;
+  for (int c = 0; c < 60; ++c) {
+    const Vec2 q{0.1 + 0.8 * u(rng), 0.1 + 0.8 * u(rng)};
+    qs.push_back(q);
+    for (int j = 0; j < 9; ++j) {
+      const double radius =
+          (j < 5 ? rho : 1.6 * rho) * (1.0 + std::ldexp(u(rng), -47));
+      const double angle = 2.0 * M_PI * (j + 0.3 * u(rng)) / 9.0;
+      pts.push_back(
+          {q.x + radius * std::cos(angle), q.y + radius * std::sin(angle)});
+    }
+  }
+  auto t = Make(pts);
+  ASSERT_TRUE(t.ok()) << t.status();
+  RowOptions cells;
+  cells.plan = RowOptions::Plan::kCells;
+  for (int k : {1, 3, 5, 7, 8, 9, 12}) {
+    auto got = KNearest(*t, qs, k, {}, cells);
+    ASSERT_TRUE(got.ok()) << got.status();
+    for (size_t i = 0; i < qs.size(); ++i) {
+      auto rank = BruteRank(pts, qs[i], kNoVertex);
+      rank.resize(k);
+      ASSERT_EQ(Row(*got, i), rank) << "k=" << k << " query " << i;
+    }
+  }
+}
+
 // Radius batches answered from cells: positions walk to their nearest
 // sites first, so a large batch of them builds the step's neighbour rows
 // for those walks (they were walked over the mesh before); a batch of
