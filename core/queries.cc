@@ -715,7 +715,9 @@ inline void SortEight(double* k) {
 // n <= 64 candidates. Each squared distance is packed with the
 // candidate's place in its lowest 6 bits (non-negative doubles order as
 // their bit patterns, so the packed keys order as the distances within
-// 2^-46 relative), and min / max networks keep the 8 smallest in order
+// 2^-46 relative: coordinates in the exact domain make every squared
+// distance finite and either 0, which packs below all others, or normal),
+// and min / max networks keep the 8 smallest in order
 // and the smallest of the rest (the 9th) over blocks of 8 candidates.
 // Those within rounding (and the packing's error) of the want-th join the
 // front, as in SortClosestPrefix, and an exact insertion pass (nearly
