@@ -713,17 +713,19 @@ inline void SortEight(double* k) {
 // SortClosestPrefix for the common small case, without its branches on
 // the data (which mispredict about once per candidate): want <= 8 of
 // n <= 64 candidates. Each squared distance is packed with the
-// candidate's place in its lowest 6 bits (non-negative doubles order as
+// candidate's place in its lowest 6 bits. Non-negative doubles order as
 // their bit patterns, so the packed keys order as the distances within
-// 2^-46 relative: coordinates in the exact domain make every squared
-// distance finite and either 0, which packs below all others, or normal),
-// and min / max networks keep the 8 smallest in order
-// and the smallest of the rest (the 9th) over blocks of 8 candidates.
-// Those within rounding (and the packing's error) of the want-th join the
+// 2^-46 relative (coordinates in the exact domain make every squared
+// distance finite and either 0, which packs below all others, or at
+// least 2^-304). Min / max networks keep the 8 smallest in order and the
+// smallest of the rest (the 9th) over blocks of 8 candidates. Those
+// within rounding (and the packing's error) of the want-th join the
 // front, as in SortClosestPrefix, and an exact insertion pass (nearly
-// always a pass of compares) orders them. Returns the front's length, or
-// 0 when this case does not apply (n > 64, want > 8, or the 9th within
-// rounding of the want-th: the general path handles those).
+// always a pass of compares) orders them. Returns the front's length m,
+// with a[m..n) left unspecified (the front's entries may appear there
+// again), or 0, with a unchanged, when this case does not apply (n > 64,
+// want > 8, or the 9th within rounding of the want-th: the general path
+// handles those).
 template <typename PosOf>
 size_t SelectClosestSmall(const Vec2& q, std::pair<double, uint32_t>* a,
                           size_t n, size_t want, PosOf&& pos) {
@@ -736,6 +738,10 @@ size_t SelectClosestSmall(const Vec2& q, std::pair<double, uint32_t>* a,
       if (first + i < n) {
         uint64_t bits;
         std::memcpy(&bits, &a[first + i].first, sizeof bits);
+        // A distance of 0 (a position at a site) packs as the smallest
+        // normal double, below every other distance (at least 2^-304): a
+        // subnormal key would be read as 0 with denormals-are-zero set.
+        bits |= uint64_t{bits == 0} << 52;
         bits = (bits & ~kSlotBits) | (first + i);
         std::memcpy(&k[i], &bits, sizeof bits);
       }

@@ -17,6 +17,10 @@
 #include <random>
 #include <thread>
 
+#if defined(__SSE2__)
+#include <xmmintrin.h>
+#endif
+
 #include "core/cell_index.h"
 #include "core/predicates.h"
 #include "tests/core/executor_under_test.h"
@@ -422,6 +426,39 @@ TEST(Queries, KNearestFromCellsOrdersDistancesCloserThanTheirRounding) {
     }
   }
 }
+
+#if defined(__SSE2__)
+// A position at a site is at squared distance 0 from it. With denormals
+// read as zero (the MXCSR flag a program built with -ffast-math sets),
+// k nearest from cells still puts that site first and the rest in order.
+// The flag is set before the triangulation is made: its threads take the
+// floating-point settings of the thread that made it.
+TEST(Queries, KNearestFromCellsAtSitesWithDenormalsAreZero) {
+  const std::vector<Vec2> pts = testing::UniformPoints(6000, 81);
+  std::vector<Vec2> qs;
+  std::vector<std::vector<uint32_t>> want;
+  for (uint32_t i = 0; i < pts.size(); i += 61) {
+    qs.push_back(pts[i]);
+    want.push_back(BruteRank(pts, pts[i], kNoVertex));
+    want.back().resize(8);
+  }
+  const unsigned csr = _mm_getcsr();
+  _mm_setcsr(csr | 0x0040);  // DAZ
+  absl::StatusOr<NeighborLists> got;
+  {
+    auto t = Make(pts);
+    ASSERT_TRUE(t.ok()) << t.status();
+    RowOptions cells;
+    cells.plan = RowOptions::Plan::kCells;
+    got = KNearest(*t, qs, 8, {}, cells);
+  }
+  _mm_setcsr(csr);
+  ASSERT_TRUE(got.ok()) << got.status();
+  for (size_t i = 0; i < qs.size(); ++i) {
+    ASSERT_EQ(Row(*got, i), want[i]) << "query " << i;
+  }
+}
+#endif
 
 // Radius batches answered from cells: positions walk to their nearest
 // sites first, so a large batch of them builds the step's neighbour rows
