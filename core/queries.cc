@@ -602,6 +602,25 @@ absl::StatusOr<NeighborLists> RunRows(
 // first in the exact order: by the squared distances (by insertion when
 // short: rows of a few sites), then an insertion pass in the exact order,
 // which moves only near-ties. pos(x) is the position of site or slot x.
+// Insertion pass in q's exact order over a[0..n) (squared distances
+// cached in .first): a pass of compares where a is already in the order
+// of the squared distances and nothing is near a tie.
+template <typename PosOf>
+void OrderExactly(const Vec2& q, std::pair<double, uint32_t>* a, size_t n,
+                  PosOf&& pos) {
+  for (size_t i = 1; i < n; ++i) {
+    const auto x = a[i];
+    size_t j = i;
+    while (j > 0 &&
+           CompareCloserCached(q, pos(x.second), x.first, pos(a[j - 1].second),
+                               a[j - 1].first) < 0) {
+      a[j] = a[j - 1];
+      --j;
+    }
+    a[j] = x;
+  }
+}
+
 template <typename PosOf>
 void SortClosestFirst(const Vec2& q, std::pair<double, uint32_t>* a, size_t n,
                       PosOf&& pos) {
@@ -619,57 +638,7 @@ void SortClosestFirst(const Vec2& q, std::pair<double, uint32_t>* a, size_t n,
   } else {
     std::sort(a, a + n, by_d2);
   }
-  for (size_t i = 1; i < n; ++i) {
-    const auto x = a[i];
-    size_t j = i;
-    while (j > 0 &&
-           CompareCloserCached(q, pos(x.second), x.first, pos(a[j - 1].second),
-                               a[j - 1].first) < 0) {
-      a[j] = a[j - 1];
-      --j;
-    }
-    a[j] = x;
-  }
-}
-
-// Puts the first `want` of a[0..n) in q's exact order at the front (the
-// rest of a stays in it, unordered) and returns how many leading entries
-// are in that order: at least min(want, n). The `want` smallest squared
-// distances are selected in double (a later entry replaces the current
-// last one when it is smaller); the entries left out whose distance lies
-// within rounding of the cut may still come before it exactly, so they
-// join the front, and the exact insertion pass of SortClosestFirst orders
-// it. When n is not much more than want, everything is sorted.
-template <typename PosOf>
-size_t SortClosestPrefix(const Vec2& q, std::pair<double, uint32_t>* a,
-                         size_t n, size_t want, PosOf&& pos) {
-  if (want == 0 || n <= want) {
-    SortClosestFirst(q, a, n, pos);
-    return n;
-  }
-  for (size_t i = 1; i < want; ++i) {
-    const auto x = a[i];
-    size_t j = i;
-    for (; j > 0 && x.first < a[j - 1].first; --j) a[j] = a[j - 1];
-    a[j] = x;
-  }
-  for (size_t i = want; i < n; ++i) {
-    if (!(a[i].first < a[want - 1].first)) continue;
-    const auto x = a[i];
-    a[i] = a[want - 1];
-    size_t j = want - 1;
-    for (; j > 0 && x.first < a[j - 1].first; --j) a[j] = a[j - 1];
-    a[j] = x;
-  }
-  const double cut = a[want - 1].first;
-  size_t m = want;
-  for (size_t i = want; i < n; ++i) {
-    if (a[i].first <= cut + internal::kDistErrBound * (cut + a[i].first)) {
-      std::swap(a[m++], a[i]);
-    }
-  }
-  SortClosestFirst(q, a, m, pos);
-  return m;
+  OrderExactly(q, a, n, pos);
 }
 
 // Compare-exchange of two packed keys (SelectClosestSmall): the smaller
@@ -789,18 +758,52 @@ size_t SelectClosestSmall(const Vec2& q, std::pair<double, uint32_t>* a,
     // 9th) may join too.
     if (m == have && n > have && may_join(a[slot(ninth)].first)) return 0;
   }
-  for (size_t i = 1; i < m; ++i) {
-    const auto x = front[i];
-    size_t j = i;
-    while (j > 0 && CompareCloserCached(q, pos(x.second), x.first,
-                                        pos(front[j - 1].second),
-                                        front[j - 1].first) < 0) {
-      front[j] = front[j - 1];
-      --j;
-    }
-    front[j] = x;
-  }
+  OrderExactly(q, front, m, pos);
   std::copy(front, front + m, a);
+  return m;
+}
+
+// Puts the first `want` of a[0..n) in q's exact order at the front (the
+// rest of a is left unspecified) and returns how many leading entries
+// are in that order: at least min(want, n). Small cases go to
+// SelectClosestSmall. The `want` smallest squared
+// distances are selected in double (a later entry replaces the current
+// last one when it is smaller); the entries left out whose distance lies
+// within rounding of the cut may still come before it exactly, so they
+// join the front, and the exact insertion pass of SortClosestFirst orders
+// it. When n is not much more than want, everything is sorted.
+template <typename PosOf>
+size_t SortClosestPrefix(const Vec2& q, std::pair<double, uint32_t>* a,
+                         size_t n, size_t want, PosOf&& pos) {
+  if (const size_t m = SelectClosestSmall(q, a, n, want, pos); m > 0) {
+    return m;
+  }
+  if (want == 0 || n <= want) {
+    SortClosestFirst(q, a, n, pos);
+    return n;
+  }
+  for (size_t i = 1; i < want; ++i) {
+    const auto x = a[i];
+    size_t j = i;
+    for (; j > 0 && x.first < a[j - 1].first; --j) a[j] = a[j - 1];
+    a[j] = x;
+  }
+  for (size_t i = want; i < n; ++i) {
+    if (!(a[i].first < a[want - 1].first)) continue;
+    const auto x = a[i];
+    a[i] = a[want - 1];
+    size_t j = want - 1;
+    for (; j > 0 && x.first < a[j - 1].first; --j) a[j] = a[j - 1];
+    a[j] = x;
+  }
+  const double cut = a[want - 1].first;
+  size_t m = want;
+  for (size_t i = want; i < n; ++i) {
+    if (a[i].first <= cut + internal::kDistErrBound * (cut + a[i].first)) {
+      std::swap(a[m++], a[i]);
+    }
+  }
+  SortClosestFirst(q, a, m, pos);
   return m;
 }
 
@@ -933,10 +936,8 @@ bool KnnCellsRow(const CellIndex& cells, const Query& q, size_t want, double r0,
     }
     r *= kRetryGrowth;
   }
-  auto pos_of = [pos](uint32_t c) -> const Vec2& { return pos[c]; };
-  if (SelectClosestSmall(q.q, kept, num_kept, want, pos_of) == 0) {
-    SortClosestPrefix(q.q, kept, num_kept, want, pos_of);
-  }
+  SortClosestPrefix(q.q, kept, num_kept, want,
+                    [pos](uint32_t c) -> const Vec2& { return pos[c]; });
   out.resize(want);
   for (size_t i = 0; i < want; ++i) {
     out[i] = {exts[kept[i].second], std::sqrt(kept[i].first)};
